@@ -1,0 +1,1 @@
+"""Library controllers (the thesis case studies and swarm protocols)."""

@@ -1,0 +1,1 @@
+"""Host side of the board link: the board interface, transports and the wire codec."""

@@ -1,0 +1,78 @@
+"""Pick a board transport by URL, the way pyserial's ``serial_for_url`` does.
+
+Schemes are registered by the transport modules; :func:`open_board` imports them lazily so that
+a user of ``sim://`` never needs pyserial or the AVR simulator.
+
+Known schemes:
+
+* ``sim://[profile][?options]`` — in-process simulated board (:mod:`.sim_board`).
+* ``simavr://[profile][?options]`` — the real firmware in the AVR simulator (:mod:`.simavr`).
+* ``xbee://<address>`` — a board behind the XBee API-mode gateway.
+* anything else pyserial understands — a serial port running the hilswarm firmware
+  (``/dev/ttyUSB0``, ``COM5``, ``loop://``, ``socket://host:port``, ``rfc2217://host:port``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any
+from urllib.parse import urlsplit
+
+from hilswarm.agents.errors import LinkUrlError
+from hilswarm.agents.link.board import Board
+
+BoardFactory = Callable[..., Board]
+
+#: scheme -> "module:function" building a Board from (url, **options).
+_SCHEMES: dict[str, str] = {
+    "sim": "hilswarm.agents.link.sim_board:board_from_url",
+    "simavr": "hilswarm.agents.link.simavr:board_from_url",
+    "xbee": "hilswarm.agents.link.xbee:board_from_url",
+}
+#: pyserial URL schemes (and bare device paths) go to the serial transport.
+_SERIAL_FACTORY = "hilswarm.agents.link.serial_board:board_from_url"
+_PYSERIAL_SCHEMES = {"loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110"}
+
+
+def link_scheme(url: str) -> str:
+    """Return the transport kind of ``url``: ``sim``, ``simavr``, ``xbee`` or ``serial``.
+
+    Raises:
+        LinkUrlError: if the URL is empty or names a scheme no transport handles.
+    """
+    if not isinstance(url, str) or not url.strip():
+        raise LinkUrlError(f"link URL must be a non-empty string, got {url!r}")
+    if "://" not in url:
+        # A bare device path: /dev/ttyUSB0, COM5.
+        if url.startswith("/dev/") or url.upper().startswith("COM"):
+            return "serial"
+        raise LinkUrlError(
+            f"link URL {url!r} has no scheme; expected sim://, simavr://, xbee://<addr>, "
+            "a serial device such as /dev/ttyUSB0, or a pyserial URL (loop://, socket://...)"
+        )
+    scheme = urlsplit(url).scheme.lower()
+    if scheme in _SCHEMES:
+        return scheme
+    if scheme in _PYSERIAL_SCHEMES:
+        return "serial"
+    known = ", ".join(sorted([*_SCHEMES, *_PYSERIAL_SCHEMES]))
+    raise LinkUrlError(f"link URL {url!r}: unknown scheme {scheme!r}; known schemes: {known}")
+
+
+def _load(target: str) -> BoardFactory:
+    module_name, _, attr = target.partition(":")
+    module = importlib.import_module(module_name)
+    factory: BoardFactory = getattr(module, attr)
+    return factory
+
+
+def board_for_url(url: str, **options: Any) -> Board:
+    """Build (but do not open) the :class:`Board` for ``url``.
+
+    ``options`` are passed to the transport (e.g. ``plant=`` for simulated boards,
+    ``baudrate=`` for serial). Raises :class:`LinkUrlError` for a bad URL.
+    """
+    kind = link_scheme(url)
+    target = _SERIAL_FACTORY if kind == "serial" else _SCHEMES[kind]
+    return _load(target)(url, **options)

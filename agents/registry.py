@@ -1,0 +1,76 @@
+"""Names that experiment files use for vehicles, controllers and plants.
+
+A name is either a short registry name from the tables below or a ``"package.module:Class"``
+path, so users can plug in their own classes without touching hilswarm. Classes are imported
+lazily: loading an experiment that uses ``frisbee`` does not import the Blimpduino model.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from hilswarm.agents.errors import HilswarmError
+
+
+class RegistryError(HilswarmError, LookupError):
+    """A vehicle/controller/plant name is unknown or its class cannot be imported."""
+
+
+VEHICLES: dict[str, str] = {
+    "simulated": "hilswarm.agents.sim.simulated_vehicle:SimulatedVehicle",
+    "frisbee": "hilswarm.agents.vehicles.frisbee:FrisbeeBot",
+    "blimpduino": "hilswarm.agents.vehicles.blimpduino:Blimpduino",
+}
+
+CONTROLLERS: dict[str, str] = {
+    "static_gain": "hilswarm.agents.control:StaticGain",
+    "state_feedback": "hilswarm.agents.control:StateFeedback",
+    "discrete_state_space": "hilswarm.agents.control:DiscreteStateSpace",
+    "waypoint": "hilswarm.agents.controllers.waypoint:WaypointController",
+    "follower": "hilswarm.agents.controllers.follower:OffsetFollower",
+    "consensus": "hilswarm.agents.controllers.consensus:LinearConsensus",
+    "blimp_flight": "hilswarm.agents.controllers.blimp_flight:BlimpFlightController",
+}
+
+PLANTS: dict[str, str] = {
+    "spring_mass_damper": "hilswarm.agents.sim.spring_mass_damper:SpringMassDamper",
+    "integrator": "hilswarm.agents.sim.integrator:Integrator",
+    "differential_drive": "hilswarm.agents.sim.differential_drive:DifferentialDrive",
+    "blimp": "hilswarm.agents.sim.blimp:BlimpPlant",
+}
+
+
+def _resolve(kind: str, table: dict[str, str], name: str) -> Any:
+    if not isinstance(name, str) or not name:
+        raise RegistryError(f"{kind} name must be a non-empty string, got {name!r}")
+    target = table.get(name, name)
+    module_name, sep, attr = target.partition(":")
+    if not sep or not module_name or not attr:
+        known = ", ".join(sorted(table))
+        raise RegistryError(
+            f"unknown {kind} {name!r}: expected one of {known} or a 'package.module:Class' path"
+        )
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise RegistryError(f"{kind} {name!r}: cannot import module {module_name!r}: {exc}") from exc
+    try:
+        return getattr(module, attr)
+    except AttributeError:
+        raise RegistryError(f"{kind} {name!r}: module {module_name!r} has no {attr!r}") from None
+
+
+def resolve_vehicle(name: str) -> Any:
+    """Return the Vehicle class for ``name`` (raises :class:`RegistryError`)."""
+    return _resolve("vehicle", VEHICLES, name)
+
+
+def resolve_controller(name: str) -> Any:
+    """Return the Controller class for ``name`` (raises :class:`RegistryError`)."""
+    return _resolve("controller", CONTROLLERS, name)
+
+
+def resolve_plant(name: str) -> Any:
+    """Return the plant class for ``name`` (raises :class:`RegistryError`)."""
+    return _resolve("plant", PLANTS, name)

@@ -1,0 +1,1 @@
+"""Simulation: plant models, the simulated board hooks and simulated motion capture."""

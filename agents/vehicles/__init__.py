@@ -1,0 +1,1 @@
+"""Library vehicles (the thesis case studies)."""

@@ -1,0 +1,1 @@
+"""hilswarm orchestrator: experiment files, graph checks, launcher, instance manager, recorder, CLI."""
