@@ -64,3 +64,15 @@ class ProtocolError(BoardError, ValueError):
 
 class LinkUrlError(HilswarmError, ValueError):
     """A link URL is malformed or names an unknown scheme."""
+
+
+class TelemetryError(HilswarmError, ValueError):
+    """A telemetry channel was defined badly or given a sample of the wrong size."""
+
+
+class RecordingError(HilswarmError, ValueError):
+    """An MCAP recording was used wrongly (unknown topic, bad message, closed writer)."""
+
+
+class PlantError(HilswarmError, ValueError):
+    """A plant model was configured badly or given a state/input of the wrong shape."""
