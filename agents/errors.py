@@ -76,3 +76,25 @@ class RecordingError(HilswarmError, ValueError):
 
 class PlantError(HilswarmError, ValueError):
     """A plant model was configured badly or given a state/input of the wrong shape."""
+
+
+class CobsDecodeError(BoardError, ValueError):
+    """Bytes between two 0x00 delimiters are not a valid COBS encoding (a damaged frame)."""
+
+
+class WireFormatError(ProtocolError):
+    """A frame's body does not follow the wire protocol (bad length, unknown type, bad pin...).
+
+    Attributes:
+        code: the protocol error code a board answers with (``ErrorCode``).
+        detail: the offending pin for pin errors, else the offending message type.
+    """
+
+    def __init__(self, message: str, *, code: int, detail: int) -> None:
+        super().__init__(message)
+        self.code = code
+        self.detail = detail
+
+
+class SimulatorError(BoardConnectionError):
+    """The AVR simulator harness or the firmware it runs is missing or failed to start."""
