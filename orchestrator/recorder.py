@@ -38,6 +38,50 @@ TICKS_TOPIC = "/orchestrator/ticks"
 #: Chunk size [bytes] of run recordings: small, so a crash loses little.
 DEFAULT_CHUNK_SIZE = 32 * 1024
 
+_BASE_PROPERTIES: dict[str, Any] = {
+    "k": {"type": "integer", "description": "tick index"},
+    "t": {"type": "number", "description": "experiment time [s]"},
+    "values": {"type": "array", "items": {"type": ["number", "null"]}},
+}
+
+
+def _object_schema(title: str, properties: Mapping[str, Any]) -> dict[str, Any]:
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": title,
+        "type": "object",
+        "properties": {**_BASE_PROPERTIES, **properties},
+        "required": ["k", "t", "values"],
+    }
+
+
+STATUS_SCHEMA = _object_schema(
+    "agent status",
+    {
+        "agent": {"type": "string"},
+        "state": {"type": "string", "description": "lifecycle state entered"},
+        "detail": {"type": "string", "description": "reason or remark"},
+    },
+)
+TICKS_SCHEMA = _object_schema(
+    TICKS_TOPIC,
+    {"agents": {"type": "object", "description": "per-agent timings of the tick"}},
+)
+EXPERIMENT_SCHEMA = _object_schema(
+    EXPERIMENT_TOPIC,
+    {
+        "name": {"type": "string"},
+        "file": {"type": "string", "description": "experiment file path"},
+        "text": {"type": "string", "description": "experiment file text as loaded"},
+        "settings": {"type": "object"},
+        "graph": {
+            "type": "object",
+            "description": "agents and adjacency; A[i][j] = 1: agent i receives agent j",
+        },
+        "agents": {"type": "object"},
+    },
+)
+
 
 def status_topic(agent: str) -> str:
     """Topic of ``agent``'s lifecycle status messages."""
@@ -73,7 +117,6 @@ class Recorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._writer = McapJsonWriter(self.path, chunk_size=chunk_size)
         self._lock = threading.Lock()
-        self._topics: dict[str, tuple[str, ...]] = {}
         self._experiment_written = False
         self._closed = False
         self.message_count = 0
@@ -125,6 +168,17 @@ class Recorder:
         vector = _as_list(values, topic)
         self._write(topic, k=k, t=t, values=vector, log_time_ns=log_time_ns, fields=named_fields)
 
+    def add_topic(self, topic: str, fields: Sequence[str] | None = None) -> None:
+        """Name the entries of a vector topic before its first message (optional).
+
+        With ``fields`` (one name per vector entry, e.g. a vehicle's ``output_names``) every
+        message also carries ``{field: values[i]}``, so Foxglove plots ``/a1/y.x``. Topics
+        written without this call are registered on first use without entry names.
+        """
+        with self._lock:
+            self._check_open(topic)
+            self._writer.add_topic(topic, fields=fields)
+
     def write_status(
         self,
         agent: str,
@@ -145,14 +199,15 @@ class Recorder:
             log_time_ns: log time [ns, wall clock, Unix epoch].
             detail: free text, e.g. the reason of a safe-mode entry.
         """
-        self._write(
-            status_topic(agent),
-            k=k,
-            t=t,
-            values=[],
-            log_time_ns=log_time_ns,
-            fields={"agent": agent, "state": str(state), "detail": str(detail)},
-        )
+        message = {
+            "k": int(k),
+            "t": float(t),
+            "values": [],
+            "agent": agent,
+            "state": str(state),
+            "detail": str(detail),
+        }
+        self._write_json(status_topic(agent), message, log_time_ns, STATUS_SCHEMA)
 
     def write_ticks(
         self, *, k: int, t: float, log_time_ns: int, timings: Mapping[str, Any]
@@ -168,8 +223,12 @@ class Recorder:
                 ..., "compute_s": ...}}}``. Numbers (numpy scalars too), strings, lists and
                 nested mappings of those are accepted; units belong in the key names.
         """
-        fields = {str(key): _jsonable(value) for key, value in timings.items()}
-        self._write(TICKS_TOPIC, k=k, t=t, values=[], log_time_ns=log_time_ns, fields=fields)
+        message: dict[str, Any] = {"k": int(k), "t": float(t), "values": []}
+        for key, value in timings.items():
+            if key in message:
+                raise RecordingError(f"{TICKS_TOPIC}: timing key {key!r} clashes with k/t/values")
+            message[str(key)] = value
+        self._write_json(TICKS_TOPIC, message, log_time_ns, TICKS_SCHEMA)
 
     def close(self) -> None:
         """Write the summary and footer and close the file (idempotent)."""
@@ -186,6 +245,10 @@ class Recorder:
 
     # -- internals ---------------------------------------------------------------------------
 
+    def _check_open(self, topic: str) -> None:
+        if self._closed:
+            raise RecordingError(f"recorder of {self.path} is closed; cannot write {topic}")
+
     def _write(
         self,
         topic: str,
@@ -196,25 +259,26 @@ class Recorder:
         log_time_ns: int,
         fields: Mapping[str, Any],
     ) -> None:
-        if not isinstance(topic, str) or not topic.startswith("/"):
-            raise RecordingError(f"topic must be a string starting with '/', got {topic!r}")
-        clean = {str(name): _jsonable(value) for name, value in fields.items()}
         with self._lock:
-            if self._closed:
-                raise RecordingError(f"recorder of {self.path} is closed; cannot write {topic}")
+            self._check_open(topic)
             if not self._experiment_written:
                 self._write_experiment(log_time_ns)
-            self._ensure_topic(topic, tuple(clean))
+            if topic not in self._writer.topics:
+                self._writer.add_topic(topic)
             self._writer.write(
-                topic, k=int(k), t=float(t), values=values, log_time_ns=int(log_time_ns), **clean
+                topic, k=int(k), t=float(t), values=values, log_time_ns=int(log_time_ns), **fields
             )
             self.message_count += 1
 
-    def _ensure_topic(self, topic: str, names: Sequence[str]) -> None:
-        known = self._topics.get(topic)
-        if known is None:
-            self._writer.add_topic(topic, fields=list(names) or None)
-            self._topics[topic] = tuple(names)
+    def _write_json(
+        self, topic: str, message: Mapping[str, Any], log_time_ns: int, schema: Mapping[str, Any]
+    ) -> None:
+        with self._lock:
+            self._check_open(topic)
+            if not self._experiment_written:
+                self._write_experiment(log_time_ns)
+            self._writer.write_json(topic, message, int(log_time_ns), schema)
+            self.message_count += 1
 
     def _write_experiment(self, log_time_ns: int) -> None:
         experiment = self.experiment
@@ -231,15 +295,18 @@ class Recorder:
                 "vehicle": spec.vehicle,
                 "link": spec.link,
                 "controller": spec.controller,
-                "params": _jsonable(spec.params),
-                "vehicle_params": _jsonable(spec.vehicle_params),
-                "pinout": _jsonable(spec.pinout),
+                "params": spec.params,
+                "vehicle_params": spec.vehicle_params,
+                "pinout": spec.pinout,
                 "initial_state": list(spec.initial_state),
                 "calibration": str(spec.calibration) if spec.calibration else None,
             }
             for spec in experiment.agents
         }
-        fields = {
+        message = {
+            "k": 0,
+            "t": 0.0,
+            "values": [],
             "name": experiment.name,
             "file": str(experiment.path),
             "text": experiment.source_text,
@@ -247,11 +314,7 @@ class Recorder:
             "graph": experiment.graph_dict(),
             "agents": agents,
         }
-        self._writer.add_topic(EXPERIMENT_TOPIC, fields=list(fields))
-        self._topics[EXPERIMENT_TOPIC] = tuple(fields)
-        self._writer.write(
-            EXPERIMENT_TOPIC, k=0, t=0.0, values=[], log_time_ns=int(log_time_ns), **fields
-        )
+        self._writer.write_json(EXPERIMENT_TOPIC, message, int(log_time_ns), EXPERIMENT_SCHEMA)
         self._experiment_written = True
         self.message_count += 1
 
@@ -262,18 +325,3 @@ def _as_list(values: ArrayLike, topic: str) -> list[float]:
     except (TypeError, ValueError) as exc:
         raise RecordingError(f"{topic}: values must be numbers, got {values!r}") from exc
     return array.tolist()
-
-
-def _jsonable(value: Any) -> Any:
-    """Turn numpy scalars/arrays, tuples and Paths into JSON-able Python values."""
-    if isinstance(value, Mapping):
-        return {str(key): _jsonable(item) for key, item in value.items()}
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, list | tuple):
-        return [_jsonable(item) for item in value]
-    if isinstance(value, Path):
-        return str(value)
-    return value
