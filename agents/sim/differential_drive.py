@@ -41,6 +41,7 @@ from typing import Protocol
 
 import numpy as np
 from hilswarm.agents.errors import PlantError
+from hilswarm.agents.sim.plant import ContinuousPlant
 from numpy.typing import ArrayLike
 
 #: Below this |θ| = |ψ̇ Δt| [rad] the arc functions use their Taylor series.
@@ -161,30 +162,32 @@ def wrap_angle(angle: float) -> float:
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
-class DifferentialDrive:
-    """Differential-drive kinematics as a continuous plant (python-control style).
+class DifferentialDrive(ContinuousPlant):
+    """Differential-drive kinematics as a :class:`ContinuousPlant` (python-control style).
 
     State ``x = [x, y, psi]`` (position [m, world frame], heading [rad, unwrapped]); input
     ``u = [v_left, v_right]`` wheel speeds [m/s]; output ``y = [x, y, psi]`` with psi wrapped
     to [-π, π). Wheel speeds beyond ``geometry.max_wheel_speed_m_s`` are clipped (saturated
-    motors). :meth:`dynamics` serves generic integrators; :meth:`step` is the exact arc update
-    and is what simulations of this vehicle should use.
+    motors). :meth:`dynamics` serves generic integrators (:meth:`advance` with ``"euler"`` or
+    ``"rk4"``); :meth:`step` — or :meth:`advance` with ``method="exact"`` — is the exact arc
+    update and is what simulations of this vehicle should use.
 
     Args:
         geometry: track, wheel size and speed limit (default: the thesis' Frisbee bot).
     """
 
-    n_states = 3
-    n_inputs = 2
-    n_outputs = 3
-    state_names = ("x", "y", "psi")
-    input_names = ("v_left", "v_right")
-    output_names = ("x", "y", "psi")
-
     def __init__(self, geometry: DriveGeometry = FRISBEE_GEOMETRY) -> None:
         if not isinstance(geometry, DriveGeometry):
             raise PlantError(f"geometry must be a DriveGeometry, got {type(geometry).__name__}")
         self.geometry = geometry
+        self._set_sizes(
+            3,
+            2,
+            3,
+            state_names=("x", "y", "psi"),
+            input_names=("v_left", "v_right"),
+            output_names=("x", "y", "psi"),
+        )
 
     def _checked(self, x: ArrayLike, u: ArrayLike) -> tuple[np.ndarray, tuple[float, float]]:
         state = np.asarray(x, dtype=float).reshape(-1)
@@ -216,6 +219,22 @@ class DifferentialDrive:
                 f"differential drive state must be [x, y, psi], got shape {state.shape}"
             )
         return np.array([state[0], state[1], wrap_angle(float(state[2]))])
+
+    def advance(
+        self,
+        t: float,
+        x: ArrayLike,
+        u: ArrayLike,
+        dt: float,
+        *,
+        method: str = "exact",
+        substeps: int = 1,
+    ) -> np.ndarray:
+        """State at ``t + dt`` with ``u`` held: ``method="exact"`` (default) is the closed-form
+        arc (``substeps`` ignored); ``"euler"``/``"rk4"`` integrate :meth:`dynamics`."""
+        if method == "exact":
+            return self.step(x, u, dt)
+        return super().advance(t, x, u, dt, method=method, substeps=substeps)
 
     def step(self, x: ArrayLike, u: ArrayLike, dt: float) -> np.ndarray:
         """Exact state after ``dt`` [s] with the (clipped) input held constant."""

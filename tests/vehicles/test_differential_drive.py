@@ -175,3 +175,15 @@ def test_pin_plant_reads_h_bridge_pins():
     plant.advance({7: 0, 8: 0, 5: 255, 4: 1, 12: 1, 6: 255}, 1.0)
     assert plant.pose() == pytest.approx(before)
     assert plant.time_s == pytest.approx(2.5)
+
+
+def test_advance_is_a_continuous_plant_with_an_exact_default():
+    from hilswarm.agents.sim.plant import ContinuousPlant
+
+    plant = DifferentialDrive()
+    assert isinstance(plant, ContinuousPlant)
+    assert (plant.n_states, plant.n_inputs, plant.n_outputs) == (3, 2, 3)
+    exact = plant.advance(0.0, [0, 0, 0.3], [0.05, 0.15], 2.0)
+    rk4 = plant.advance(0.0, [0, 0, 0.3], [0.05, 0.15], 2.0, method="rk4", substeps=200)
+    assert exact == pytest.approx(plant.step([0, 0, 0.3], [0.05, 0.15], 2.0), abs=0)
+    assert rk4 == pytest.approx(exact, abs=1e-12)
