@@ -1,0 +1,726 @@
+"""The agent process: one vehicle, its board link and its controller on the bus.
+
+An agent is started by the orchestrator's launcher (``python -m hilswarm.agents.agent
+--connect ENDPOINT --config JSON``) or by ``hilswarm agent`` on another machine. It
+
+1. opens a Zenoh *client* session to the orchestrator's router (``connected``),
+2. builds its vehicle, opens and configures its board, builds its controller (``configured``),
+3. declares its publishers (``y``, ``u``, ``x_hat``, ``status``), subscribes to its
+   neighbours' **explicit** ``y`` keys, to the tick and control keys, declares its ``set``
+   queryable and its liveliness token (``armed``),
+4. answers ticks (``running``) until told to stop.
+
+Tick ``k`` (see :class:`~hilswarm.agents.bus.TickMessage`): every y_{k-1} is in, so the agent
+computes ``u_k = controller(u_{k-1}, y_{k-1}, neighbours' y_{k-1})``, applies it, lets the
+board/plant advance one period (``exchange``), senses ``y_k`` and publishes it — one bus round
+trip per tick. Tick 0 only senses ``y_0``. ``u_k`` is the input held over ``[t_{k-1}, t_k)``
+and is recorded with ``t = t_{k-1}``; ``y_k`` is recorded with ``t = t_k = k * dt``.
+
+Everything the agent reacts to arrives through one queue drained by the main thread: bus
+callbacks only enqueue (no work on Zenoh's threads), so ticks, neighbour outputs, parameter
+changes and commands are handled in arrival order, between ticks, without locks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from types import FrameType
+from typing import Any
+
+import numpy as np
+import zenoh
+from hilswarm.agents import bus
+from hilswarm.agents.control import ControlModel
+from hilswarm.agents.errors import HilswarmError
+from hilswarm.agents.lifecycle import AgentLifecycle
+from hilswarm.agents.link.url import board_for_url, link_scheme
+from hilswarm.agents.registry import resolve_controller, resolve_vehicle
+
+logger = logging.getLogger(__name__)
+
+#: Board watchdog when the experiment gives none [s].
+DEFAULT_WATCHDOG_S = 0.5
+#: How long an agent waits for the router, its publishers' subscribers and the manager [s].
+DEFAULT_STARTUP_TIMEOUT_S = 20.0
+#: How long a tick may wait for a neighbour output the manager says is in [s].
+NEIGHBOUR_WAIT_S = 2.0
+#: Neighbour outputs kept per neighbour (ticks).
+NEIGHBOUR_HISTORY = 4
+
+
+class AgentConfigError(HilswarmError, ValueError):
+    """An agent configuration (JSON or fields) is malformed."""
+
+
+class StopRequestedError(HilswarmError, RuntimeError):
+    """The agent was told to stop (signal, lost manager) before it was running."""
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """Everything one agent process needs (built by the orchestrator from the experiment).
+
+    Attributes:
+        experiment: experiment name (bus key prefix).
+        name: this agent's name.
+        agent_names: every agent of the experiment, in graph order (tick messages name lost
+            agents by index in this tuple).
+        neighbours: agents whose output this agent receives (row of the adjacency matrix).
+        vehicle: vehicle registry name or ``"package.module:Class"``.
+        link: board link URL, or ``None`` for vehicles that need no board.
+        controller: controller registry name or ``"package.module:Class"``.
+        params: controller parameters.
+        vehicle_params: vehicle keyword parameters.
+        pinout: pin overrides (device -> role -> pin).
+        initial_state: initial state of the simulated plant (plant units).
+        calibration: calibration file path or ``None``.
+        dt: control period [s].
+        watchdog_s: board watchdog timeout [s] (``None``: :data:`DEFAULT_WATCHDOG_S`).
+        seed: seed for simulated sensors (mocap noise), or ``None``.
+        mocap_noise_std: standard deviation of simulated mocap noise [m, rad] (0: exact).
+    """
+
+    experiment: str
+    name: str
+    agent_names: tuple[str, ...]
+    neighbours: tuple[str, ...]
+    vehicle: str
+    link: str | None
+    controller: str
+    dt: float
+    params: dict[str, Any] = field(default_factory=dict)
+    vehicle_params: dict[str, Any] = field(default_factory=dict)
+    pinout: dict[str, dict[str, int | str]] = field(default_factory=dict)
+    initial_state: tuple[float, ...] = ()
+    calibration: str | None = None
+    watchdog_s: float | None = None
+    seed: int | None = None
+    mocap_noise_std: float = 0.0
+
+    def __post_init__(self) -> None:
+        bus.check_key_name(self.experiment, what="experiment name")
+        bus.check_key_name(self.name, what="agent name")
+        if self.name not in self.agent_names:
+            raise AgentConfigError(
+                f"agent {self.name!r} is not in the experiment's agents {self.agent_names}"
+            )
+        unknown = [n for n in self.neighbours if n not in self.agent_names]
+        if unknown:
+            raise AgentConfigError(f"agent {self.name!r}: unknown neighbours {unknown}")
+        if self.name in self.neighbours:
+            raise AgentConfigError(f"agent {self.name!r} lists itself as its own neighbour")
+        if not (isinstance(self.dt, int | float) and math.isfinite(self.dt) and self.dt > 0):
+            raise AgentConfigError(f"agent {self.name!r}: dt must be > 0 [s], got {self.dt!r}")
+
+    @property
+    def index(self) -> int:
+        """Index of this agent in :attr:`agent_names`."""
+        return self.agent_names.index(self.name)
+
+    def to_json(self) -> str:
+        """Serialise (the launcher passes this on the agent's command line)."""
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> AgentConfig:
+        """Inverse of :meth:`to_json` (raises :class:`AgentConfigError`)."""
+        try:
+            data = json.loads(text)
+            data["agent_names"] = tuple(data["agent_names"])
+            data["neighbours"] = tuple(data["neighbours"])
+            data["initial_state"] = tuple(data.get("initial_state", ()))
+            return cls(**data)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise AgentConfigError(f"bad agent configuration JSON: {exc}") from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# Building the vehicle, board and controller
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class AgentHardware:
+    """The vehicle, its board (or ``None``) and its control model."""
+
+    vehicle: Any
+    board: Any | None
+    model: Any
+
+
+def build_hardware(config: AgentConfig) -> AgentHardware:
+    """Build the vehicle, open/configure its board and build the controller's ControlModel.
+
+    For ``sim://`` and ``simavr://`` links the board drives the vehicle's own simulated
+    hardware (``vehicle.simulated_hardware``) and a simulated mocap follows that plant.
+    """
+    vehicle_cls = resolve_vehicle(config.vehicle)
+    vehicle = vehicle_cls(
+        name=config.name,
+        pinout=config.pinout or None,
+        params=config.vehicle_params,
+        calibration=_load_calibration(config.calibration),
+        initial_state=list(config.initial_state) or None,
+        dt=config.dt,
+    )
+    board = None
+    if getattr(vehicle, "needs_board", True):
+        board = _open_board(config, vehicle)
+    controller = resolve_controller(config.controller)()
+    model = ControlModel(
+        controller,
+        dt=config.dt,
+        n_inputs=int(vehicle.n_inputs),
+        n_outputs=int(vehicle.n_outputs),
+        params=config.params,
+    )
+    return AgentHardware(vehicle=vehicle, board=board, model=model)
+
+
+def _load_calibration(path: str | None) -> Any:
+    if path is None:
+        return None
+    from hilswarm.agents.calibration import Calibration  # noqa: PLC0415 - only when used
+
+    loader = getattr(Calibration, "from_file", None)
+    return loader(Path(path)) if loader is not None else Path(path)
+
+
+def _open_board(config: AgentConfig, vehicle: Any) -> Any:
+    if not config.link:
+        raise AgentConfigError(
+            f"agent {config.name!r}: vehicle {config.vehicle!r} needs a board but the "
+            'experiment gives no link URL (e.g. link = "sim://")'
+        )
+    options: dict[str, Any] = {}
+    if link_scheme(config.link) in ("sim", "simavr"):
+        plant = vehicle.simulated_hardware(
+            initial_state=list(config.initial_state) or None, dt=config.dt
+        )
+        options = {"plant": plant, "dt": config.dt}
+        if plant is not None:
+            from hilswarm.agents.sim.mocap import SimulatedMocap  # noqa: PLC0415 - sim only
+
+            vehicle.pose_source = SimulatedMocap(
+                plant, noise_std=config.mocap_noise_std, seed=config.seed
+            )
+    board = board_for_url(config.link, **options)
+    vehicle.connect(board, watchdog_s=config.watchdog_s or DEFAULT_WATCHDOG_S)
+    return board
+
+
+# ---------------------------------------------------------------------------------------------
+# The agent
+# ---------------------------------------------------------------------------------------------
+
+# Queue items: (kind, payload...). Kinds are small ints for speed.
+_TICK, _NEIGHBOUR, _CONTROL, _SET, _MANAGER_GONE, _SIGNAL = range(6)
+
+
+class Agent:
+    """One agent on the bus (see the module docstring).
+
+    Args:
+        config: what to build and where it sits in the graph.
+        endpoints: Zenoh endpoints to connect to (the orchestrator's router or a zenohd).
+        hardware_factory: builds vehicle/board/controller (tests may pass their own).
+        clock: monotonic clock [s] used for tick timings.
+        startup_timeout_s: bound on waiting for the bus and the manager.
+    """
+
+    def __init__(
+        self,
+        config: AgentConfig,
+        endpoints: Sequence[str],
+        *,
+        hardware_factory: Callable[[AgentConfig], AgentHardware] = build_hardware,
+        clock: Callable[[], float] = time.perf_counter,
+        startup_timeout_s: float = DEFAULT_STARTUP_TIMEOUT_S,
+    ) -> None:
+        self.config = config
+        self.endpoints = list(endpoints)
+        self.keys = bus.BusKeys(config.experiment)
+        self._hardware_factory = hardware_factory
+        self._clock = clock
+        self._startup_timeout_s = startup_timeout_s
+        self._queue: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
+        self.lifecycle = AgentLifecycle(on_transition=self._on_transition)
+        self._session: zenoh.Session | None = None
+        self._status_pub: zenoh.Publisher | None = None
+        self._entities: list[Any] = []  # keep references: undeclared when dropped
+        self.hardware: AgentHardware | None = None
+        self.k = -1  # last tick answered
+        self._u = np.zeros(0)
+        self._y: np.ndarray | None = None
+        self._neighbour_y: dict[str, dict[int, np.ndarray]] = {n: {} for n in config.neighbours}
+        self._received_from: set[str] = set()
+        self._stop_requested = ""
+        self._manager_seen = threading.Event()
+        self._queue_replay: list[tuple[Any, ...]] = []
+
+    # -- status ----------------------------------------------------------------------------
+
+    def _on_transition(self, event: str, source: str, target: str, detail: str) -> None:
+        logger.info("%s: %s -> %s (%s) %s", self.config.name, source, target, event, detail)
+        self.publish_status(
+            {"kind": "transition", "event": event, "source": source, "state": target},
+            detail=detail,
+        )
+
+    def publish_status(self, fields: Mapping[str, Any], *, detail: str = "") -> None:
+        """Publish a status message (JSON) with the current tick and state."""
+        if self._status_pub is None:
+            return
+        k = max(self.k, 0)
+        message = {
+            "agent": self.config.name,
+            "state": self.lifecycle.state_id,
+            "k": k,
+            "t": k * self.config.dt,
+            "detail": detail,
+            **fields,
+        }
+        self._status_pub.put(bus.encode_json(message))
+
+    # -- start-up --------------------------------------------------------------------------
+
+    def _wait_for(self, event: threading.Event, what: str) -> None:
+        """Wait (bounded) for ``event``, still honouring stop requests and the manager's loss."""
+        deadline = time.monotonic() + self._startup_timeout_s
+        while not event.wait(0.05):
+            self._drain_startup_queue()
+            if time.monotonic() > deadline:
+                raise bus.BusConnectionError(
+                    f"agent {self.config.name!r}: timed out after {self._startup_timeout_s} s "
+                    f"waiting for {what}"
+                )
+
+    def _drain_startup_queue(self) -> None:
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if item[0] in (_SIGNAL, _MANAGER_GONE):
+                raise StopRequestedError(f"agent {self.config.name!r}: {item[1]} during start-up")
+            self._queue_replay.append(item)
+
+    def _matched(self, publisher: zenoh.Publisher) -> threading.Event:
+        """An event set once ``publisher`` has a matching subscriber."""
+        event = threading.Event()
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                event.set()
+
+        self._entities.append(
+            publisher.declare_matching_listener(zenoh.handlers.Callback(on_status, indirect=False))
+        )
+        if publisher.matching_status:
+            event.set()
+        return event
+
+    def _open_bus(self) -> zenoh.Session:
+        session = bus.open_session(bus.client_config(self.endpoints))
+        self._session = session
+        self._status_pub = session.declare_publisher(
+            self.keys.status(self.config.name), **bus.DATA_QOS
+        )
+        self._wait_for(
+            self._matched(self._status_pub), "the orchestrator to subscribe to the status key"
+        )
+        return session
+
+    def _declare(self, session: zenoh.Session) -> None:
+        keys, name, put = self.keys, self.config.name, self._queue.put
+        self._y_pub = session.declare_publisher(keys.y(name), **bus.TICK_PATH_QOS)
+        self._u_pub = session.declare_publisher(keys.u(name), **bus.DATA_QOS)
+        self._x_pub = session.declare_publisher(keys.x_hat(name), **bus.DATA_QOS)
+        entities: list[Any] = [self._y_pub, self._u_pub, self._x_pub]
+        for neighbour in self.config.neighbours:
+            entities.append(
+                session.declare_subscriber(
+                    keys.y(neighbour),
+                    zenoh.handlers.Callback(
+                        lambda s, n=neighbour: put((_NEIGHBOUR, n, s.payload.to_bytes())),
+                        indirect=False,
+                    ),
+                )
+            )
+        entities.append(
+            session.declare_subscriber(
+                keys.tick,
+                zenoh.handlers.Callback(
+                    lambda s: put((_TICK, s.payload.to_bytes())), indirect=False
+                ),
+            )
+        )
+        entities.append(
+            session.declare_subscriber(
+                keys.control,
+                zenoh.handlers.Callback(
+                    lambda s: put((_CONTROL, s.payload.to_bytes())), indirect=False
+                ),
+            )
+        )
+        entities.append(
+            session.declare_queryable(
+                keys.set(name), zenoh.handlers.Callback(lambda q: put((_SET, q)), indirect=False)
+            )
+        )
+        entities.append(
+            session.liveliness().declare_subscriber(
+                keys.alive(MANAGER_NAME),
+                zenoh.handlers.Callback(self._on_manager_liveliness, indirect=False),
+                history=True,
+            )
+        )
+        self._entities.extend(entities)
+        self._wait_for(self._matched(self._y_pub), "the manager to subscribe to y")
+        self._wait_for(self._manager_seen, "the instance manager's liveliness token")
+        # Declared last: once the manager sees the token, every declaration above is known.
+        self._entities.append(session.liveliness().declare_token(keys.alive(name)))
+
+    def _on_manager_liveliness(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._manager_seen.set()
+        else:
+            self._queue.put((_MANAGER_GONE, "the instance manager disappeared"))
+
+    # -- main loop -------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Run until stopped; returns the process exit status (0 clean stop, 1 failure)."""
+        status = 1
+        try:
+            session = self._open_bus()
+            self.lifecycle.connect()
+            self.hardware = self._hardware_factory(self.config)
+            self._u = np.zeros(int(self.hardware.vehicle.n_inputs))
+            self.lifecycle.configure()
+            self._declare(session)
+            self.lifecycle.arm(detail=f"neighbours: {', '.join(self.config.neighbours) or '-'}")
+            for item in self._queue_replay:
+                self._queue.put(item)
+            self._queue_replay.clear()
+            status = self._loop()
+        except StopRequestedError as exc:
+            self._go_safe(str(exc))
+            status = 0
+        except HilswarmError as exc:
+            logger.error("agent %s failed: %s", self.config.name, exc)
+            self._go_safe(f"failed: {exc}")
+        except Exception as exc:  # a bug in user code must still leave the vehicle safe
+            logger.exception("agent %s crashed", self.config.name)
+            self._go_safe(f"crashed: {type(exc).__name__}: {exc}")
+        finally:
+            self._shutdown()
+        return status
+
+    def _loop(self) -> int:
+        get = self._queue.get
+        while True:
+            try:
+                item = get(timeout=0.25)
+            except queue.Empty:
+                if self._stop_requested:
+                    break
+                continue
+            kind = item[0]
+            if kind == _TICK:
+                self._on_tick(item[1])
+            elif kind == _NEIGHBOUR:
+                self._store_neighbour(item[1], item[2])
+            elif kind == _SET:
+                self._on_set(item[1])
+            elif kind == _CONTROL:
+                self._on_control(item[1])
+            elif kind in (_MANAGER_GONE, _SIGNAL):
+                self._go_safe(str(item[1]))
+                self._stop_requested = str(item[1])
+            if self._stop_requested:
+                break
+        self._go_safe(self._stop_requested)
+        return 0
+
+    def _store_neighbour(self, name: str, payload: bytes) -> None:
+        k, _t, values = bus.decode_vector(payload)
+        history = self._neighbour_y[name]
+        history[k] = values
+        self._received_from.add(name)
+        if len(history) > NEIGHBOUR_HISTORY:
+            del history[min(history)]
+
+    def _neighbour_outputs(self, k_prev: int, missing: set[str], stale_ok: bool) -> dict:
+        """Neighbours' y_{k_prev}; waits (bounded) for those the manager reports in."""
+        result: dict[str, np.ndarray | None] = {}
+        waiting = []
+        for name in self.config.neighbours:
+            history = self._neighbour_y[name]
+            if k_prev in history:
+                result[name] = history[k_prev]
+            elif name in missing:
+                result[name] = None
+            elif stale_ok:
+                older = [k for k in history if k < k_prev]
+                result[name] = history[max(older)] if older else None
+            else:
+                waiting.append(name)
+        if waiting:
+            deadline = self._clock() + NEIGHBOUR_WAIT_S
+            while waiting:
+                remaining = deadline - self._clock()
+                if remaining <= 0:
+                    logger.warning(
+                        "%s: tick %d: no output from %s", self.config.name, k_prev + 1, waiting
+                    )
+                    for name in waiting:
+                        result[name] = None
+                    break
+                try:
+                    item = self._queue.get(timeout=remaining)
+                except queue.Empty:
+                    continue
+                if item[0] == _NEIGHBOUR:
+                    self._store_neighbour(item[1], item[2])
+                    if item[1] in waiting and k_prev in self._neighbour_y[item[1]]:
+                        waiting.remove(item[1])
+                        result[item[1]] = self._neighbour_y[item[1]][k_prev]
+                elif item[0] == _CONTROL:
+                    self._on_control(item[1])
+                else:
+                    self._queue_replay.append(item)
+        return result
+
+    def _latest_tick(self, payload: bytes) -> tuple[bus.TickMessage, int]:
+        """Decode a tick; if more ticks are queued (we fell behind), keep only the newest."""
+        tick = bus.decode_tick(payload)
+        skipped = 0
+        while True:
+            try:
+                item = self._queue.get_nowait()
+            except queue.Empty:
+                break
+            if item[0] == _TICK:
+                tick = bus.decode_tick(item[1])
+                skipped += 1
+            elif item[0] == _NEIGHBOUR:
+                self._store_neighbour(item[1], item[2])
+            elif item[0] == _CONTROL:
+                self._on_control(item[1])
+            else:
+                self._queue_replay.append(item)
+        return tick, skipped
+
+    def _on_tick(self, payload: bytes) -> None:
+        clock = self._clock
+        tick, skipped = self._latest_tick(payload)
+        if tick.k <= self.k:
+            return  # duplicate or stale tick
+        lifecycle = self.lifecycle
+        if lifecycle.state_id == "armed":
+            lifecycle.start()
+        hw = self.hardware
+        vehicle = hw.vehicle
+        k, t = tick.k, tick.t
+        t0 = clock()
+        active = lifecycle.state_id == "running"
+        u_new: np.ndarray | None = None
+        if k > 0 and active and self._y is not None:
+            names = self.config.agent_names
+            missing = {names[i] for i in tick.missing if i < len(names)}
+            neighbours = self._neighbour_outputs(k - 1, missing, stale_ok=skipped > 0)
+            try:
+                u_new = hw.model.step(self._u, self._y, t=t - self.config.dt, neighbours=neighbours)
+            except Exception as exc:  # user controller code: any failure means safe mode
+                logger.exception("%s: controller failed at tick %d", self.config.name, k)
+                self._go_safe(f"controller failed at tick {k}: {type(exc).__name__}: {exc}")
+                u_new = None
+        t1 = clock()
+        try:
+            if u_new is not None and lifecycle.state_id == "running":
+                vehicle.apply(u_new)
+                self._u = u_new
+            vehicle.exchange()
+            t2 = clock()
+            y = np.asarray(vehicle.sense(k, t), dtype=np.float64)
+        except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
+            t2 = clock()
+            logger.exception("%s: vehicle/board failed at tick %d", self.config.name, k)
+            self._go_safe(f"vehicle/board failed at tick {k}: {type(exc).__name__}: {exc}")
+            y = np.full(int(vehicle.n_outputs), np.nan)
+        t3 = clock()
+        self.k = k
+        self._y = y
+        timing = bus.AgentTiming(t1 - t0, t2 - t1, t3 - t2, skipped)
+        self._y_pub.put(bus.encode_vector(k, t, y), attachment=bus.encode_timing(timing))
+        if u_new is not None:
+            t_applied = t - self.config.dt
+            self._u_pub.put(bus.encode_vector(k, t_applied, u_new))
+            x_hat = hw.model.x_hat
+            if x_hat.size:
+                self._x_pub.put(bus.encode_vector(k, t_applied, x_hat))
+        if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
+            reason = getattr(vehicle, "safe_reason", "") or "vehicle entered safe mode"
+            lifecycle.enter_safe(detail=str(reason))
+        if self._queue_replay:
+            for item in self._queue_replay:
+                self._queue.put(item)
+            self._queue_replay.clear()
+
+    # -- commands --------------------------------------------------------------------------
+
+    def _on_control(self, payload: bytes) -> None:
+        try:
+            command, reason = bus.decode_control(payload)
+        except bus.BusMessageError as exc:
+            logger.warning("%s: %s", self.config.name, exc)
+            return
+        state = self.lifecycle.state_id
+        if command is bus.ControlCommand.ESTOP:
+            self._estop(reason or "e-stop")
+        elif command is bus.ControlCommand.STOP:
+            self._stop_requested = reason or "stop requested"
+        elif command is bus.ControlCommand.PAUSE and state == "running":
+            self.lifecycle.pause(detail=reason)
+        elif command is bus.ControlCommand.RESUME and state == "paused":
+            self.lifecycle.resume(detail=reason)
+
+    def _estop(self, reason: str) -> None:
+        hw = self.hardware
+        if hw is not None:
+            try:
+                hw.vehicle.enter_safe_mode(f"e-stop: {reason}")
+            except HilswarmError as exc:
+                logger.error("%s: enter_safe_mode failed: %s", self.config.name, exc)
+            if hw.board is not None:
+                try:
+                    hw.board.estop()
+                except HilswarmError as exc:
+                    logger.error("%s: board e-stop failed: %s", self.config.name, exc)
+        if self.lifecycle.state_id not in ("safe", "stopped"):
+            self.lifecycle.enter_safe(detail=f"e-stop: {reason}")
+
+    def _go_safe(self, reason: str) -> None:
+        """Vehicle to safe mode (outputs to safe values, pushed to the board) and state safe."""
+        if self.lifecycle.state_id in ("safe", "stopped"):
+            return
+        hw = self.hardware
+        if hw is not None:
+            try:
+                if not getattr(hw.vehicle, "safe_mode", False):
+                    hw.vehicle.enter_safe_mode(reason)
+                hw.vehicle.exchange()  # push the safe values to the board now
+            except HilswarmError as exc:
+                logger.error("%s: could not make outputs safe: %s", self.config.name, exc)
+        self.lifecycle.enter_safe(detail=reason)
+
+    def _on_set(self, query: zenoh.Query) -> None:
+        """Apply a parameter change between ticks and acknowledge it (query reply + status)."""
+        try:
+            request = bus.decode_json(query.payload.to_bytes() if query.payload else b"{}")
+            changes = request.get("params")
+            if not isinstance(changes, dict) or not changes:
+                raise AgentConfigError("expected {'params': {name: value, ...}}")
+            if self.hardware is None:
+                raise AgentConfigError("the controller is not built yet")
+            self.hardware.model.set_params(**changes)
+        except HilswarmError as exc:
+            query.reply_err(bus.encode_json({"ok": False, "error": str(exc)}))
+            self.publish_status({"kind": "set", "ok": False}, detail=f"set refused: {exc}")
+        else:
+            applied = {name: self.hardware.model.params[name] for name in changes}
+            ack = {"ok": True, "agent": self.config.name, "k": self.k, "params": _jsonable(applied)}
+            query.reply(query.key_expr, bus.encode_json(ack))
+            self.publish_status({"kind": "set", "ok": True}, detail=f"set {_jsonable(applied)}")
+        finally:
+            query.drop()
+
+    # -- shutdown --------------------------------------------------------------------------
+
+    def _shutdown(self) -> None:
+        if self.lifecycle.state_id == "safe":
+            received = sorted(self._received_from)
+            self.lifecycle.stop(detail=f"received from: {', '.join(received) or '-'}")
+        hw = self.hardware
+        if hw is not None and hw.board is not None:
+            try:
+                hw.board.close()
+            except HilswarmError as exc:
+                logger.error("%s: closing the board failed: %s", self.config.name, exc)
+        self._entities.clear()
+        self._status_pub = None
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the main loop to go safe and stop (thread- and signal-safe)."""
+        self._queue.put((_SIGNAL, reason))
+
+    @property
+    def received_from(self) -> frozenset[str]:
+        """Agents whose output this agent actually received (neighbour-only delivery check)."""
+        return frozenset(self._received_from)
+
+
+#: Name of the instance manager's liveliness token (``hilswarm/<exp>/alive/_manager``).
+MANAGER_NAME = "_manager"
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def run_agent(config: AgentConfig, endpoints: Sequence[str]) -> int:
+    """Run one agent in this process until stopped; SIGINT/SIGTERM stop it cleanly."""
+    agent = Agent(config, endpoints)
+
+    def on_signal(signum: int, _frame: FrameType | None) -> None:
+        agent.request_stop(f"signal {signal.Signals(signum).name}")
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    return agent.run()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m hilswarm.agents.agent --connect ENDPOINT --config JSON``."""
+    parser = argparse.ArgumentParser(prog="python -m hilswarm.agents.agent")
+    parser.add_argument("--connect", action="append", required=True, help="Zenoh endpoint")
+    parser.add_argument("--config", required=True, help="AgentConfig as JSON")
+    parser.add_argument("-v", "--verbose", action="count", default=0)
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.WARNING - 10 * min(args.verbose, 2),
+        format="%(asctime)s %(levelname)s agent %(process)d %(name)s: %(message)s",
+    )
+    try:
+        config = AgentConfig.from_json(args.config)
+    except HilswarmError as exc:
+        logger.error("%s", exc)
+        return 2
+    return run_agent(config, args.connect)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,392 @@
+"""The Zenoh bus: key space, compact binary messages and session configurations.
+
+Shared by agent processes and the orchestrator (this module imports nothing from
+``hilswarm.orchestrator``).
+
+Key space, one experiment per prefix ``hilswarm/<exp>/``:
+
+* ``tick`` — the instance manager's tick messages (:func:`encode_tick`).
+* ``control`` — swarm-wide commands (:class:`ControlCommand`: stop, estop, pause, resume).
+* ``agent/<name>/y`` — the agent's output y_k (:func:`encode_vector`), with its tick timings
+  as attachment (:class:`AgentTiming`). Neighbours subscribe to this *explicit* key.
+* ``agent/<name>/u``, ``agent/<name>/x_hat`` — applied input u_k and controller state.
+* ``agent/<name>/status`` — lifecycle transitions and acknowledgements (JSON, rare).
+* ``agent/<name>/set`` — a queryable: parameter changes, answered with an acknowledgement.
+* ``agent/<name>/telemetry/<channel>`` — telemetry channels (vector messages).
+* ``alive/<name>`` — the agent's liveliness token (kill -9 is seen when it disappears).
+
+Agents subscribe only to explicit keys, never wildcards, so a non-neighbour's output is never
+delivered to them. The orchestrator's recorder may use wildcards.
+
+Per-tick vectors use a fixed little-endian layout (no JSON on the hot path): ``k`` int64,
+``t`` float64 [s, experiment time], then the values as float64. ``NaN`` is a valid value.
+
+Configurations: the orchestrator opens a *router* session listening on loopback; agents are
+*clients* of it (a peer mesh does not scale past a few dozen processes on two cores, and a peer
+hub does not relay between peers). Multicast scouting and gossip are off in every
+configuration; the link lease is short (1 s) so that a hung process is dropped quickly.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+import re
+import struct
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+from hilswarm.agents.errors import HilswarmError
+
+#: First chunk of every key.
+KEY_ROOT = "hilswarm"
+#: Default TCP port of the embedded listening session.
+DEFAULT_PORT = 7447
+#: Link lease [ms]: a silent peer is dropped after this long.
+LEASE_MS = 1000
+#: Keep-alive messages sent per lease period.
+KEEP_ALIVES_PER_LEASE = 4
+
+#: Zenoh QoS of everything on the tick path: reliable, never dropped, first in every queue.
+TICK_PATH_QOS: dict[str, Any] = {
+    "congestion_control": zenoh.CongestionControl.BLOCK,
+    "priority": zenoh.Priority.REAL_TIME,
+    "reliability": zenoh.Reliability.RELIABLE,
+}
+#: QoS of recorded but non-critical data (u, x_hat, telemetry, status): reliable, blocking.
+DATA_QOS: dict[str, Any] = {
+    "congestion_control": zenoh.CongestionControl.BLOCK,
+    "priority": zenoh.Priority.DATA_HIGH,
+    "reliability": zenoh.Reliability.RELIABLE,
+}
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+
+
+class BusConnectionError(HilswarmError, ConnectionError):
+    """The bus session could not be opened (no router at the endpoint, port in use, ...)."""
+
+
+class BusMessageError(HilswarmError, ValueError):
+    """A bus message does not follow its binary or JSON layout."""
+
+
+class BusKeyError(HilswarmError, ValueError):
+    """A name cannot be used in a bus key (empty, or contains '/', '*', '$', '?', '#', space)."""
+
+
+def check_key_name(name: str, *, what: str) -> str:
+    """Return ``name`` if it is usable as one chunk of a key, else raise :class:`BusKeyError`."""
+    if not isinstance(name, str) or not _NAME_RE.match(name):
+        raise BusKeyError(
+            f"{what} {name!r} cannot be used in a bus key: expected letters, digits, '_', '.', '-' "
+            "(no '/', '*', '$', '?', '#' or spaces), not starting with '.' or '-'"
+        )
+    return name
+
+
+@dataclass(frozen=True)
+class BusKeys:
+    """The keys of one experiment.
+
+    Args:
+        experiment: experiment name (one key chunk).
+    """
+
+    experiment: str
+
+    def __post_init__(self) -> None:
+        check_key_name(self.experiment, what="experiment name")
+
+    @property
+    def prefix(self) -> str:
+        """``hilswarm/<exp>``."""
+        return f"{KEY_ROOT}/{self.experiment}"
+
+    @property
+    def tick(self) -> str:
+        """Key of the manager's tick messages."""
+        return f"{self.prefix}/tick"
+
+    @property
+    def control(self) -> str:
+        """Key of swarm-wide commands (stop, estop, pause, resume)."""
+        return f"{self.prefix}/control"
+
+    @property
+    def manager_status(self) -> str:
+        """Key on which the instance manager announces its own state (JSON)."""
+        return f"{self.prefix}/manager/status"
+
+    def agent(self, name: str, leaf: str) -> str:
+        """Key ``hilswarm/<exp>/agent/<name>/<leaf>`` (leaf: y, u, x_hat, status, set)."""
+        check_key_name(name, what="agent name")
+        return f"{self.prefix}/agent/{name}/{leaf}"
+
+    def y(self, name: str) -> str:
+        """Key of agent ``name``'s output y_k."""
+        return self.agent(name, "y")
+
+    def u(self, name: str) -> str:
+        """Key of agent ``name``'s applied input u_k."""
+        return self.agent(name, "u")
+
+    def x_hat(self, name: str) -> str:
+        """Key of agent ``name``'s controller state x_hat_k."""
+        return self.agent(name, "x_hat")
+
+    def status(self, name: str) -> str:
+        """Key of agent ``name``'s lifecycle status (JSON)."""
+        return self.agent(name, "status")
+
+    def set(self, name: str) -> str:
+        """Key of agent ``name``'s parameter queryable."""
+        return self.agent(name, "set")
+
+    def telemetry(self, name: str, channel: str) -> str:
+        """Key of agent ``name``'s telemetry channel ``channel``."""
+        check_key_name(channel, what="telemetry channel")
+        return self.agent(name, f"telemetry/{channel}")
+
+    def alive(self, name: str) -> str:
+        """Key of agent ``name``'s liveliness token."""
+        check_key_name(name, what="agent name")
+        return f"{self.prefix}/alive/{name}"
+
+    # Wildcards: for the orchestrator and its recorder only, never for agents.
+    @property
+    def all_agent_data(self) -> str:
+        """Wildcard matching every key under ``agent/`` (recorder only)."""
+        return f"{self.prefix}/agent/**"
+
+    @property
+    def all_outputs(self) -> str:
+        """Wildcard matching every agent's y key (instance manager only)."""
+        return f"{self.prefix}/agent/*/y"
+
+    @property
+    def all_alive(self) -> str:
+        """Wildcard matching every liveliness token of the experiment (manager only)."""
+        return f"{self.prefix}/alive/*"
+
+    def parse_agent_key(self, key: str) -> tuple[str, str]:
+        """Split ``hilswarm/<exp>/agent/<name>/<leaf...>`` into ``(name, leaf)``.
+
+        Raises:
+            BusKeyError: ``key`` is not an agent key of this experiment.
+        """
+        head = f"{self.prefix}/agent/"
+        if not key.startswith(head):
+            raise BusKeyError(f"key {key!r} is not under {head!r}")
+        name, sep, leaf = key[len(head) :].partition("/")
+        if not sep or not name or not leaf:
+            raise BusKeyError(f"key {key!r}: expected {head}<name>/<leaf>")
+        return name, leaf
+
+    def parse_alive_key(self, key: str) -> str:
+        """Return the agent name of a liveliness key ``hilswarm/<exp>/alive/<name>``."""
+        head = f"{self.prefix}/alive/"
+        if not key.startswith(head) or "/" in key[len(head) :] or len(key) == len(head):
+            raise BusKeyError(f"key {key!r}: expected {head}<name>")
+        return key[len(head) :]
+
+
+# ---------------------------------------------------------------------------------------------
+# Messages
+# ---------------------------------------------------------------------------------------------
+
+_VECTOR_HEADER = struct.Struct("<qd")
+_TICK_HEADER = struct.Struct("<qdH")
+_TIMING = struct.Struct("<dddI")
+
+
+def encode_vector(k: int, t: float, values: np.ndarray | Sequence[float]) -> bytes:
+    """Encode a per-tick vector: ``k`` (tick), ``t`` [s, experiment time], ``values``.
+
+    ``values`` is written as float64; ``NaN`` marks an unavailable component.
+    """
+    array = np.asarray(values, dtype=np.float64)
+    if array.ndim != 1:
+        raise BusMessageError(f"vector values must be one-dimensional, got shape {array.shape}")
+    return _VECTOR_HEADER.pack(k, t) + array.tobytes()
+
+
+def decode_vector(payload: bytes | bytearray | memoryview) -> tuple[int, float, np.ndarray]:
+    """Decode :func:`encode_vector`'s bytes into ``(k, t, values)`` (values: a float64 copy)."""
+    size = len(payload)
+    if size < _VECTOR_HEADER.size or (size - _VECTOR_HEADER.size) % 8:
+        raise BusMessageError(
+            f"vector message of {size} bytes: expected 16 header bytes plus 8 per value"
+        )
+    k, t = _VECTOR_HEADER.unpack_from(payload)
+    values = np.frombuffer(payload, dtype="<f8", offset=_VECTOR_HEADER.size).copy()
+    return k, t, values
+
+
+@dataclass(frozen=True)
+class TickMessage:
+    """One tick of the instance manager.
+
+    Tick ``k`` asks every agent to compute u_k from u_{k-1}, y_{k-1} and its neighbours'
+    y_{k-1}, apply it, let the plant advance, sense y_k and publish it (for ``k = 0``: only
+    sense y_0). Every y_{k-1} is in when tick ``k`` is sent, except those of the agents listed
+    in ``missing`` (lost, or late in realtime mode): their neighbours see ``None`` for them.
+
+    Attributes:
+        k: tick index (>= 0).
+        t: experiment time of the tick [s] (``k * dt``).
+        missing: indices (experiment order) of agents whose y_{k-1} is not in.
+    """
+
+    k: int
+    t: float
+    missing: tuple[int, ...] = ()
+
+
+def encode_tick(message: TickMessage) -> bytes:
+    """Encode a :class:`TickMessage` (int64 k, float64 t, uint16 count, uint16 indices)."""
+    missing = message.missing
+    return _TICK_HEADER.pack(message.k, message.t, len(missing)) + struct.pack(
+        f"<{len(missing)}H", *missing
+    )
+
+
+def decode_tick(payload: bytes | bytearray | memoryview) -> TickMessage:
+    """Decode :func:`encode_tick`'s bytes."""
+    size = len(payload)
+    if size < _TICK_HEADER.size:
+        raise BusMessageError(f"tick message of {size} bytes: expected at least 18")
+    k, t, count = _TICK_HEADER.unpack_from(payload)
+    if size != _TICK_HEADER.size + 2 * count:
+        raise BusMessageError(f"tick message of {size} bytes does not hold {count} indices")
+    missing = struct.unpack_from(f"<{count}H", payload, _TICK_HEADER.size) if count else ()
+    return TickMessage(k, t, tuple(missing))
+
+
+@dataclass(frozen=True)
+class AgentTiming:
+    """Where one agent spent one tick (sent as attachment of its y message).
+
+    Attributes:
+        compute_s: controller step [s, wall clock].
+        actuate_s: apply + board exchange (plant advance) [s, wall clock].
+        sense_s: sensing y_k [s, wall clock].
+        skipped: ticks the agent dropped since its last answer because it fell behind.
+    """
+
+    compute_s: float = 0.0
+    actuate_s: float = 0.0
+    sense_s: float = 0.0
+    skipped: int = 0
+
+
+def encode_timing(timing: AgentTiming) -> bytes:
+    """Encode an :class:`AgentTiming` (three float64 and a uint32)."""
+    return _TIMING.pack(timing.compute_s, timing.actuate_s, timing.sense_s, timing.skipped)
+
+
+def decode_timing(payload: bytes | bytearray | memoryview | None) -> AgentTiming:
+    """Decode :func:`encode_timing`'s bytes (``None`` or empty -> zero timing)."""
+    if not payload:
+        return AgentTiming()
+    if len(payload) != _TIMING.size:
+        raise BusMessageError(f"timing attachment of {len(payload)} bytes, expected {_TIMING.size}")
+    return AgentTiming(*_TIMING.unpack(payload))
+
+
+class ControlCommand(enum.Enum):
+    """Swarm-wide commands published on the ``control`` key."""
+
+    STOP = "stop"  #: every agent to safe mode, then stopped; the run ends and is recorded
+    ESTOP = "estop"  #: every agent to safe mode at once (board e-stop), then the run stops
+    PAUSE = "pause"  #: no more ticks until resume; agents hold their last input
+    RESUME = "resume"  #: ticks start again
+
+
+def encode_control(command: ControlCommand, *, reason: str = "") -> bytes:
+    """Encode a control command (small JSON: rare, human-inspectable)."""
+    return json.dumps({"command": command.value, "reason": reason}).encode()
+
+
+def decode_control(payload: bytes | bytearray | memoryview) -> tuple[ControlCommand, str]:
+    """Decode :func:`encode_control`'s bytes into ``(command, reason)``."""
+    try:
+        data = json.loads(bytes(payload))
+        return ControlCommand(data["command"]), str(data.get("reason", ""))
+    except (ValueError, KeyError, TypeError) as exc:
+        known = ", ".join(c.value for c in ControlCommand)
+        raise BusMessageError(f"bad control message {bytes(payload)!r}: expected {known}") from exc
+
+
+def encode_json(data: dict[str, Any]) -> bytes:
+    """Encode a status / acknowledgement message."""
+    return json.dumps(data, allow_nan=True).encode()
+
+
+def decode_json(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """Decode a status / acknowledgement message."""
+    try:
+        data = json.loads(bytes(payload))
+    except ValueError as exc:
+        raise BusMessageError(f"bad JSON message {bytes(payload)[:80]!r}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise BusMessageError(f"JSON message must be an object, got {type(data).__name__}")
+    return data
+
+
+# ---------------------------------------------------------------------------------------------
+# Session configurations
+# ---------------------------------------------------------------------------------------------
+
+
+def loopback_endpoint(port: int) -> str:
+    """``tcp/127.0.0.1:<port>``."""
+    if not isinstance(port, int) or not 0 < port < 65536:
+        raise BusKeyError(f"port must be an integer in 1..65535, got {port!r}")
+    return f"tcp/127.0.0.1:{port}"
+
+
+def _base_config(mode: str) -> zenoh.Config:
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("scouting/gossip/enabled", "false")
+    config.insert_json5("transport/link/tx/lease", str(LEASE_MS))
+    config.insert_json5("transport/link/tx/keep_alive", str(KEEP_ALIVES_PER_LEASE))
+    return config
+
+
+def listen_config(endpoints: Iterable[str]) -> zenoh.Config:
+    """Config of the orchestrator's embedded router session listening on ``endpoints``.
+
+    Agents connect to it as clients; it routes between them.
+    """
+    listen = list(endpoints)
+    if not listen:
+        raise BusKeyError("a listening session needs at least one endpoint")
+    config = _base_config("router")
+    config.insert_json5("listen/endpoints", json.dumps(listen))
+    config.insert_json5("connect/endpoints", "[]")
+    return config
+
+
+def client_config(endpoints: Iterable[str]) -> zenoh.Config:
+    """Config of a client session (agent, CLI command, or orchestrator joining a zenohd)."""
+    connect = list(endpoints)
+    if not connect:
+        raise BusKeyError("a client session needs at least one endpoint to connect to")
+    config = _base_config("client")
+    config.insert_json5("connect/endpoints", json.dumps(connect))
+    config.insert_json5("listen/endpoints", "[]")
+    return config
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """Open a Zenoh session, turning Zenoh's errors into :class:`BusConnectionError`."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        raise BusConnectionError(f"cannot open the Zenoh session: {exc}") from exc
