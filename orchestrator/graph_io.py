@@ -48,21 +48,27 @@ def validate_matrix(
     ok = True
     if len(rows) != n:
         problems.append(
-            Problem(file, key, f"has {len(rows)} rows but there are {n} agents ({_names(names)})")
+            Problem(
+                file,
+                key,
+                f"has {len(rows)} rows, expected {n} (one per agent: {_names(names)}); "
+                "the matrix must be square",
+            )
         )
         ok = False
     for i, row in enumerate(rows):
-        if len(row) != len(rows):
+        if len(row) != n:
             problems.append(
                 Problem(
                     file,
                     f"{key}[{i}]",
-                    f"row has {len(row)} entries; the matrix must be square "
-                    f"({len(rows)} x {len(rows)})",
+                    f"row has {len(row)} entries, expected {n} (one per agent); "
+                    "the matrix must be square",
                 )
             )
             ok = False
-    matrix = np.zeros((len(rows), len(rows)), dtype=np.int8)
+    size = max([n, len(rows), *(len(row) for row in rows)])
+    matrix = np.zeros((size, size), dtype=np.int8)
     for i, row in enumerate(rows):
         for j, value in enumerate(row):
             entry = _zero_one(value)
@@ -71,9 +77,9 @@ def validate_matrix(
                     Problem(file, f"{key}[{i}][{j}]", f"entry is {value!r}; expected 0 or 1")
                 )
                 ok = False
-            elif i < len(rows) and j < len(rows):
+            else:
                 matrix[i, j] = entry
-    for i in range(len(rows)):
+    for i in range(size):
         if matrix[i, i] != 0:
             who = f" ({names[i]})" if i < n else ""
             problems.append(
@@ -85,7 +91,7 @@ def validate_matrix(
                 )
             )
             ok = False
-    return matrix if ok else None
+    return matrix[:n, :n] if ok else None
 
 
 def read_graph_file(

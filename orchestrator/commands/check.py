@@ -1,0 +1,64 @@
+"""``hilswarm check FILE``: validate an experiment file without starting anything.
+
+Prints every problem as ``file:key: reason`` and exits 2 when there is any; otherwise prints a
+short summary (agents, rate, ticks, graph facts) and any warnings, and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from hilswarm.orchestrator.checks import CheckReport, check_file
+from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
+
+HELP = "validate an experiment file without starting anything"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``hilswarm check``."""
+    parser.add_argument("file", help="experiment file (TOML)")
+    add_override_arguments(parser)
+    parser.add_argument(
+        "--strict", action="store_true", help="treat warnings as problems (exit 2 on any)"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Check ``args.file``; 0 when valid, 2 when there are problems."""
+    report = check_file(args.file, overrides=overrides_from_args(args))
+    for warning in report.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    if report.problems or (args.strict and report.warnings):
+        count = len(report.problems) + (len(report.warnings) if args.strict else 0)
+        for problem in report.problems:
+            print(problem, file=sys.stderr)
+        print(
+            f"hilswarm check: {count} problem{'s' if count != 1 else ''} in {args.file}",
+            file=sys.stderr,
+        )
+        return 2
+    print(summary(report))
+    return 0
+
+
+def summary(report: CheckReport) -> str:
+    """One short paragraph describing a valid experiment."""
+    experiment = report.raise_for_problems()
+    facts = report.facts
+    lines = [
+        f"ok: {experiment.name} ({report.path}): {len(experiment.agents)} agents, "
+        f"{experiment.rate_hz:g} Hz, {experiment.duration_s:g} s ({experiment.n_ticks} ticks), "
+        f"{experiment.mode}, on agent loss: {experiment.on_agent_loss}"
+    ]
+    if facts is not None:
+        tree = f"spanning tree from {', '.join(facts.roots)}" if facts.roots else "no spanning tree"
+        lines.append(
+            f"graph: {facts.n_edges} edges, "
+            f"{'connected' if facts.weakly_connected else 'NOT connected'}, {tree}, "
+            f"lambda_2 = {facts.algebraic_connectivity:.4g}"
+        )
+    for spec in experiment.agents:
+        link = spec.link or "(no board)"
+        lines.append(f"  {spec.name}: {spec.vehicle} via {link}, controller {spec.controller}")
+    return "\n".join(lines)
