@@ -118,7 +118,13 @@ class Channel:
         Raises:
             TelemetryError: ``values`` does not hold exactly ``n_fields`` numbers.
         """
-        row = np.asarray(values, dtype=np.float64)
+        try:
+            row = np.asarray(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise TelemetryError(
+                f"channel {self.name!r}: expected {self.n_fields} values {self.fields}, "
+                f"got non-numeric {values!r}"
+            ) from None
         if row.shape != (self.n_fields,) and not (row.ndim == 0 and self.n_fields == 1):
             raise TelemetryError(
                 f"channel {self.name!r}: expected {self.n_fields} values {self.fields}, "
