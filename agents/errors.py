@@ -98,3 +98,7 @@ class WireFormatError(ProtocolError):
 
 class SimulatorError(BoardConnectionError):
     """The AVR simulator harness or the firmware it runs is missing or failed to start."""
+
+
+class VehicleError(HilswarmError, ValueError):
+    """A vehicle was configured or driven with bad values (pinout override, limits, u/y shape)."""
