@@ -238,7 +238,8 @@ class ControlModel:
         self.t0: float = float(t0)
         self.n_inputs: int = n_inputs
         self.n_outputs: int | None = n_outputs
-        self._params: dict[str, Any] = controller.validate_params(dict(params or {}))
+        self._given_params: dict[str, Any] = dict(params or {})
+        self._params: dict[str, Any] = controller.validate_params(self._given_params)
         self._x0 = None if x0 is None else np.array(x0, dtype=np.float64).reshape(-1)
         self._k = 0
         self._x_hat = self._initial_x_hat()
@@ -290,18 +291,21 @@ class ControlModel:
     def set_params(self, *, reset_state: bool = False, **changes: Any) -> None:
         """Change some parameters; the controller validates the whole new set first.
 
-        On a validation error nothing changes. ``reset_state=True`` also restarts ``x_hat``
-        from the initial condition (needed when the state size changes with the parameters).
+        The changes are merged into the parameters as given (not the validated ones), so
+        values the controller derives from others (defaults sized by a matrix) are derived
+        again. On a validation error nothing changes. ``reset_state=True`` also restarts
+        ``x_hat`` from the initial condition (needed when the state size changes).
 
         Raises:
             ControllerError: the controller rejects the new parameters.
         """
-        self.replace_params({**self._params, **changes}, reset_state=reset_state)
+        self.replace_params({**self._given_params, **changes}, reset_state=reset_state)
 
     def replace_params(self, params: Mapping[str, Any], *, reset_state: bool = False) -> None:
         """Replace all parameters (missing ones take the controller's defaults)."""
-        validated = self.controller.validate_params(dict(params))
-        self._params = validated
+        given = dict(params)
+        validated = self.controller.validate_params(given)
+        self._given_params, self._params = given, validated
         if reset_state:
             self._x_hat = self._initial_x_hat()
             self._ensure_x_channel()
