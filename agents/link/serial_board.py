@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -208,6 +209,7 @@ class SerialBoard(Board):
         self._port_factory = port_factory
         self._port: SerialPort | None = None
         self._decoder = FrameDecoder()
+        self._inbox: deque[bytes] = deque()  # decoded payloads not yet looked at
         self._seq = 0
         self._info: BoardInfo | None = None
         self._config: tuple[tuple[PinConfig, ...], int] | None = None
@@ -233,6 +235,7 @@ class SerialBoard(Board):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise BoardConnectionError(f"cannot open serial link {self.url!r}: {exc}") from exc
         self._decoder.reset()
+        self._inbox.clear()
 
     def _close_port(self) -> None:
         port, self._port = self._port, None
@@ -274,8 +277,11 @@ class SerialBoard(Board):
         return seq
 
     def _await_reply(self, seq: int, reply_type: int, deadline: float) -> Message | None:
-        while self._clock() < deadline:
-            for payload in self._read_payloads():
+        while self._inbox or self._clock() < deadline:
+            if not self._inbox:
+                self._inbox.extend(self._read_payloads())
+            while self._inbox:
+                payload = self._inbox.popleft()
                 try:
                     reply = parse_payload(payload)
                 except (WireFormatError, TypeError) as exc:
@@ -283,8 +289,10 @@ class SerialBoard(Board):
                     _log.warning("%s: malformed reply %s dropped: %s", self.url, payload.hex(),
                                  exc)
                     continue
-                if reply.seq != seq or (reply.msg_type != reply_type
-                                        and not isinstance(reply, ErrorMsg)):
+                # FRAME_TOO_LONG (seq 0) can only answer a frame this host never sent.
+                too_long = isinstance(reply, ErrorMsg) and reply.code == ErrorCode.FRAME_TOO_LONG
+                if reply.seq != seq or too_long or (reply.msg_type != reply_type
+                                                    and not isinstance(reply, ErrorMsg)):
                     self.stats.stale_replies += 1
                     self._event("stale_reply", f"discarded {reply.msg_type.name} seq "
                                 f"{reply.seq} while waiting for seq {seq}")

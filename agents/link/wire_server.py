@@ -80,11 +80,13 @@ class FaultInjection:
         drop_replies: number of next replies to compute but not send (a lost reply).
         drop_requests: number of next valid requests to ignore entirely (a lost request).
         corrupt_replies: number of next replies sent with a flipped CRC bit.
+        duplicate_replies: number of next replies sent twice (the copy arrives stale).
     """
 
     drop_replies: int = 0
     drop_requests: int = 0
     corrupt_replies: int = 0
+    duplicate_replies: int = 0
 
 
 @dataclass
@@ -119,6 +121,21 @@ class WireServer:
         self._modes: list[int] | None = None
         self._info: BoardInfo | None = None
         self._board_id: int | None = None
+
+    def reboot(self) -> None:
+        """Model a board reset: configuration lost, RESET reported, partial frames dropped.
+
+        Calls ``board.power_cycle()`` when the board has one (``SimBoard`` does).
+        """
+        power_cycle = getattr(self.board, "power_cycle", None)
+        if callable(power_cycle):
+            power_cycle()
+        self._decoder.reset()
+        self._pending_errors.clear()
+        self._rx_errors = False
+        self._reset = True
+        self._estopped = False
+        self._modes = None
 
     # ------------------------------------------------------------------ bytes in, bytes out
     def handle_bytes(self, data: bytes) -> bytes:
@@ -155,6 +172,9 @@ class WireServer:
             crc = bytearray(crc16_bytes(payload))
             crc[0] ^= 0x01
             frame = cobs_encode(payload + bytes(crc)) + b"\x00"
+        if self.faults.duplicate_replies > 0:
+            self.faults.duplicate_replies -= 1
+            frame += frame
         self.stats.replies += 1
         return frame
 
