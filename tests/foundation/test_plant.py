@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -31,7 +32,7 @@ def _error_at_one(method: str, n_steps: int, a: float = -1.3) -> float:
 @pytest.mark.parametrize(("method", "order"), [("euler", 1), ("rk4", 4)])
 def test_order_of_accuracy_on_exponential(method: str, order: int) -> None:
     errors = [_error_at_one(method, n) for n in (8, 16, 32, 64)]
-    observed = [math.log2(e1 / e2) for e1, e2 in zip(errors, errors[1:], strict=False)]
+    observed = [math.log2(e1 / e2) for e1, e2 in itertools.pairwise(errors)]
     assert all(abs(p - order) < 0.15 for p in observed), observed
 
 
