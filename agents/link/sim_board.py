@@ -362,9 +362,30 @@ class SimBoard(Board):
         if self._config is None:
             raise _refuse(ErrorCode.NOT_CONFIGURED, "TICK before any CONFIG")
         config = self._config
+        # Same order as the firmware: dout bits, then rmask, then PWM/servo writes.
         checked: dict[int, int] = {}
+        later: list[tuple[int | None, object]] = []
         for raw_pin, raw_value in writes.items():
             pin = _as_pin(raw_pin)
+            entry = config.get(pin) if pin is not None else None
+            if entry is None or entry.mode is not PinMode.DIGITAL_OUT:
+                later.append((pin, raw_value))
+                continue
+            value = _as_pin(raw_value)
+            if value is None or value not in (0, 1):
+                raise _refuse(ErrorCode.BAD_VALUE, f"digital level {raw_value!r} is not 0/1", pin)
+            checked[entry.pin] = value
+        read_pins: list[int] = []
+        for raw_pin in reads:
+            pin = _as_pin(raw_pin)
+            entry = config.get(pin) if pin is not None else None
+            if entry is None or not entry.mode.is_input:
+                what = "unconfigured" if entry is None else entry.mode.name
+                raise _refuse(ErrorCode.BAD_PIN, f"read of a pin that is {what}", pin)
+            if entry.pin in read_pins:
+                raise _refuse(ErrorCode.BAD_PIN, "pin read twice in one TICK", entry.pin)
+            read_pins.append(entry.pin)
+        for pin, raw_value in later:
             entry = config.get(pin) if pin is not None else None
             if entry is None or not entry.mode.is_output:
                 what = "unconfigured" if entry is None else entry.mode.name
@@ -378,16 +399,6 @@ class SimBoard(Board):
                     pin,
                 )
             checked[entry.pin] = value
-        read_pins: list[int] = []
-        for raw_pin in reads:
-            pin = _as_pin(raw_pin)
-            entry = config.get(pin) if pin is not None else None
-            if entry is None or not entry.mode.is_input:
-                what = "unconfigured" if entry is None else entry.mode.name
-                raise _refuse(ErrorCode.BAD_PIN, f"read of a pin that is {what}", pin)
-            if entry.pin in read_pins:
-                raise _refuse(ErrorCode.BAD_PIN, "pin read twice in one TICK", entry.pin)
-            read_pins.append(entry.pin)
         if not self._estopped:
             self._outputs.update(checked)
         self._exchanges += 1
