@@ -34,7 +34,6 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from types import FrameType
 from typing import Any
 
@@ -170,7 +169,7 @@ def build_hardware(config: AgentConfig) -> AgentHardware:
         name=config.name,
         pinout=config.pinout or None,
         params=config.vehicle_params,
-        calibration=_load_calibration(config.calibration),
+        calibration=config.calibration,
         initial_state=list(config.initial_state) or None,
         dt=config.dt,
     )
@@ -186,15 +185,6 @@ def build_hardware(config: AgentConfig) -> AgentHardware:
         params=config.params,
     )
     return AgentHardware(vehicle=vehicle, board=board, model=model)
-
-
-def _load_calibration(path: str | None) -> Any:
-    if path is None:
-        return None
-    from hilswarm.agents.calibration import Calibration  # noqa: PLC0415 - only when used
-
-    loader = getattr(Calibration, "from_file", None)
-    return loader(Path(path)) if loader is not None else Path(path)
 
 
 def _open_board(config: AgentConfig, vehicle: Any) -> Any:
@@ -552,7 +542,8 @@ class Agent:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
                 self._u = u_new
-            vehicle.exchange()
+            if k > 0:  # tick 0 senses what connect() primed: the initial state
+                vehicle.exchange()
             t2 = clock()
             y = np.asarray(vehicle.sense(k, t), dtype=np.float64)
         except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
@@ -572,7 +563,7 @@ class Agent:
             if x_hat.size:
                 self._x_pub.put(bus.encode_vector(k, t_applied, x_hat))
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
-            reason = getattr(vehicle, "safe_reason", "") or "vehicle entered safe mode"
+            reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
             lifecycle.enter_safe(detail=str(reason))
         if self._queue_replay:
             for item in self._queue_replay:

@@ -1,0 +1,176 @@
+"""Starts one OS process per agent and guarantees they are gone when the run ends.
+
+Each agent runs ``python -m hilswarm.agents.agent --connect ENDPOINT --config JSON`` in its own
+process group (a new session), so a Ctrl-C at the terminal reaches only the orchestrator, which
+then stops the agents in order (safe mode first). :meth:`AgentLauncher.stop` — called on every
+exit path, also from ``__exit__`` — waits for agents that were told to stop, then sends SIGTERM
+to every remaining process group and finally SIGKILL, each step with a timeout.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Mapping, Sequence
+from types import TracebackType
+
+from hilswarm.agents.agent import AgentConfig
+from hilswarm.agents.errors import HilswarmError
+from hilswarm.orchestrator.experiment import Experiment
+
+logger = logging.getLogger(__name__)
+
+
+class AgentProcessError(HilswarmError, RuntimeError):
+    """An agent process exited while the run needed it (start-up failure, crash)."""
+
+
+def agent_config_for(
+    experiment: Experiment, name: str, *, mocap_noise_std: float = 0.0
+) -> AgentConfig:
+    """The :class:`AgentConfig` of agent ``name`` of ``experiment`` (links as overridden)."""
+    spec = experiment.agent(name)
+    return AgentConfig(
+        experiment=experiment.name,
+        name=spec.name,
+        agent_names=experiment.agent_names,
+        neighbours=experiment.neighbours(name),
+        vehicle=spec.vehicle,
+        link=spec.link,
+        controller=spec.controller,
+        dt=experiment.dt,
+        params=dict(spec.params),
+        vehicle_params=dict(spec.vehicle_params),
+        pinout={device: dict(roles) for device, roles in spec.pinout.items()},
+        initial_state=tuple(float(v) for v in spec.initial_state),
+        calibration=str(spec.calibration) if spec.calibration else None,
+        watchdog_s=experiment.watchdog_s,
+        seed=experiment.seed,
+        mocap_noise_std=mocap_noise_std,
+    )
+
+
+class AgentLauncher:
+    """Starts and supervises agent processes.
+
+    Args:
+        endpoints: Zenoh endpoints the agents connect to.
+        python: interpreter to run agents with.
+        env: extra environment variables for the agents.
+        verbose: agent log verbosity (0 warnings, 1 info, 2 debug).
+    """
+
+    def __init__(
+        self,
+        endpoints: Sequence[str],
+        *,
+        python: str = sys.executable,
+        env: Mapping[str, str] | None = None,
+        verbose: int = 0,
+    ) -> None:
+        self.endpoints = list(endpoints)
+        self.python = python
+        self.env = {**os.environ, **(env or {})}
+        self.verbose = verbose
+        self.processes: dict[str, subprocess.Popen[bytes]] = {}
+
+    def command(self, config: AgentConfig) -> list[str]:
+        """The command line that starts ``config``'s agent."""
+        command = [self.python, "-m", "hilswarm.agents.agent"]
+        for endpoint in self.endpoints:
+            command += ["--connect", endpoint]
+        command += ["--config", config.to_json()]
+        command += ["-v"] * self.verbose
+        return command
+
+    def start(self, config: AgentConfig) -> subprocess.Popen[bytes]:
+        """Start ``config``'s agent in its own process group."""
+        if config.name in self.processes:
+            raise AgentProcessError(f"agent {config.name!r} was already started")
+        process = subprocess.Popen(
+            self.command(config),
+            env=self.env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        self.processes[config.name] = process
+        logger.info("started agent %s (pid %d)", config.name, process.pid)
+        return process
+
+    def start_all(self, configs: Sequence[AgentConfig]) -> None:
+        """Start every agent of ``configs``."""
+        for config in configs:
+            self.start(config)
+
+    def exited(self) -> dict[str, int]:
+        """Agents whose process has exited, with their exit status."""
+        return {
+            name: code
+            for name, process in self.processes.items()
+            if (code := process.poll()) is not None
+        }
+
+    def check(self) -> None:
+        """Raise :class:`AgentProcessError` if any agent process has exited."""
+        exited = self.exited()
+        if exited:
+            described = ", ".join(f"{name} (exit status {code})" for name, code in exited.items())
+            raise AgentProcessError(f"agent process exited: {described}; see its log above")
+
+    def stop(self, *, grace_s: float = 5.0, term_s: float = 3.0) -> dict[str, int | None]:
+        """Make sure every agent process is gone; returns exit statuses (None: unkillable).
+
+        Waits up to ``grace_s`` for processes to exit by themselves (they were told to stop
+        on the bus), then SIGTERMs the process groups of the rest and waits ``term_s``, then
+        SIGKILLs what is left. A stopped (SIGSTOP) process is continued so it can die.
+        """
+        codes: dict[str, int | None] = {}
+        for name, process in self.processes.items():
+            codes[name] = _wait(process, grace_s)
+            grace_s = 0.2 if codes[name] is None else grace_s  # do not wait n * grace_s
+        for name, process in self.processes.items():
+            if codes[name] is None:
+                logger.warning("agent %s did not exit; sending SIGTERM", name)
+                _signal_group(process, signal.SIGTERM)
+                _signal_group(process, signal.SIGCONT)
+        for name, process in self.processes.items():
+            if codes[name] is None:
+                codes[name] = _wait(process, term_s)
+                term_s = 0.2 if codes[name] is None else term_s
+        for name, process in self.processes.items():
+            if codes[name] is None:
+                logger.warning("agent %s ignored SIGTERM; sending SIGKILL", name)
+                _signal_group(process, signal.SIGKILL)
+                codes[name] = _wait(process, 5.0)
+        # Children of an agent (e.g. the simavr harness) share its group: kill leftovers.
+        for process in self.processes.values():
+            _signal_group(process, signal.SIGKILL)
+        return codes
+
+    def __enter__(self) -> AgentLauncher:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop(grace_s=0.5 if exc_type is not None else 5.0)
+
+
+def _wait(process: subprocess.Popen[bytes], timeout_s: float) -> int | None:
+    try:
+        return process.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        return None
+
+
+def _signal_group(process: subprocess.Popen[bytes], signum: int) -> None:
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(process.pid, signum)
