@@ -1,0 +1,196 @@
+#include "engine.h"
+
+#include "hal.h"
+
+namespace hilswarm {
+
+void Engine::begin(bool hw_watchdog_reset, uint32_t now_ms) {
+  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+    config_[pin].mode = wire::kModeUnused;
+    config_[pin].safe = 0;
+  }
+  flags_ = wire::kStatusReset | wire::kStatusNotConfigured;
+  if (hw_watchdog_reset) flags_ |= wire::kStatusHwWatchdogReset;
+  watchdog_ms_ = 0;
+  last_rx_ms_ = now_ms;
+  link_tripped_ = false;
+}
+
+uint8_t Engine::take_status() {
+  const uint8_t status = flags_;
+  flags_ &= static_cast<uint8_t>(~wire::kStatusEvents);
+  return status;
+}
+
+void Engine::drive_safe() {
+  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+    const PinConfig& c = config_[pin];
+    switch (c.mode) {
+      case wire::kModeDigitalOut:
+        hal::write_digital(pin, static_cast<uint8_t>(c.safe));
+        break;
+      case wire::kModePwm:
+        hal::write_pwm(pin, static_cast<uint8_t>(c.safe));
+        break;
+      case wire::kModeServo:
+        hal::write_servo(pin, c.safe);
+        break;
+      default:
+        break;
+    }
+  }
+}
+
+void Engine::poll(uint32_t now_ms) {
+  if (watchdog_ms_ == 0 || link_tripped_ || (flags_ & wire::kStatusNotConfigured)) return;
+  if (now_ms - last_rx_ms_ >= watchdog_ms_) {
+    drive_safe();
+    flags_ |= wire::kStatusWatchdogTripped;
+    link_tripped_ = true;
+  }
+}
+
+void Engine::error(uint8_t seq, uint8_t code, uint8_t detail, FrameBuilder& out) {
+  out.begin(wire::kError, seq);
+  out.put_u8(code);
+  out.put_u8(detail);
+}
+
+void Engine::frame_too_long(FrameBuilder& out) {
+  flags_ |= wire::kStatusRxErrors;
+  error(0, wire::kErrFrameTooLong, 0, out);
+}
+
+void Engine::handle(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
+                    FrameBuilder& out) {
+  // A late frame first reports the silence it ends, then feeds the watchdog.
+  poll(now_ms);
+  last_rx_ms_ = now_ms;
+  link_tripped_ = false;
+
+  const uint8_t type = payload[0];
+  const uint8_t seq = payload[1];
+  const uint8_t* body = payload + 2;
+  const uint8_t body_len = static_cast<uint8_t>(len - 2);
+  switch (type) {
+    case wire::kHello:
+      on_hello(seq, body_len, out);
+      break;
+    case wire::kConfig:
+      on_config(seq, body, body_len, out);
+      break;
+    case wire::kTick:
+      on_tick(seq, body, body_len, now_us, out);
+      break;
+    case wire::kEstop:
+      on_estop(seq, body_len, out);
+      break;
+    case wire::kSetId:
+      on_set_id(seq, body, body_len, out);
+      break;
+    default:
+      error(seq, wire::kErrUnknownType, type, out);
+      break;
+  }
+}
+
+void Engine::on_hello(uint8_t seq, uint8_t body_len, FrameBuilder& out) {
+  if (body_len != 0) return error(seq, wire::kErrBadLength, wire::kHello, out);
+  out.begin(wire::kHello | wire::kReplyBit, seq);
+  out.put_u8(wire::kProtocolVersion);
+  out.put_u8(version_.major);
+  out.put_u8(version_.minor);
+  out.put_u16(hal::load_board_id());
+  out.put_u8(take_status());
+  out.put_u8(wire::kPinCount);
+  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) out.put_u8(pin_capabilities(pin));
+  flags_ &= static_cast<uint8_t>(~(wire::kStatusReset | wire::kStatusHwWatchdogReset));
+}
+
+void Engine::on_config(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuilder& out) {
+  PinConfig next[wire::kPinCount];
+  uint16_t watchdog_ms = 0;
+  uint8_t n_entries = 0;
+  const RequestError e = check_config(body, len, next, &watchdog_ms, &n_entries);
+  if (!e.ok()) return error(seq, e, out);
+
+  // Release every pin whose mode changes before taking new ones (no transient Timer1 clash).
+  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+    if (config_[pin].mode != next[pin].mode && config_[pin].mode != wire::kModeUnused) {
+      hal::set_pin_mode(pin, wire::kModeUnused);
+    }
+  }
+  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+    if (config_[pin].mode != next[pin].mode && next[pin].mode != wire::kModeUnused) {
+      hal::set_pin_mode(pin, next[pin].mode);
+    }
+    config_[pin] = next[pin];
+  }
+  drive_safe();
+  watchdog_ms_ = watchdog_ms;
+  link_tripped_ = false;
+  flags_ &= static_cast<uint8_t>(~(wire::kStatusEstopped | wire::kStatusNotConfigured));
+
+  out.begin(wire::kConfig | wire::kReplyBit, seq);
+  out.put_u8(take_status());
+  out.put_u8(n_entries);
+}
+
+void Engine::on_tick(uint8_t seq, const uint8_t* body, uint8_t len, uint32_t now_us,
+                     FrameBuilder& out) {
+  if (flags_ & wire::kStatusNotConfigured) {
+    return error(seq, wire::kErrNotConfigured, wire::kTick, out);
+  }
+  const RequestError e = check_tick(body, len, config_);
+  if (!e.ok()) return error(seq, e, out);
+
+  if (!(flags_ & wire::kStatusEstopped)) {
+    const uint32_t dout = read_u24(body);
+    for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+      if (config_[pin].mode == wire::kModeDigitalOut) {
+        hal::write_digital(pin, (dout >> pin) & 1U);
+      }
+    }
+    uint8_t i = kTickHeader;
+    while (i < len) {
+      const uint8_t pin = body[i];
+      if (config_[pin].mode == wire::kModePwm) {
+        hal::write_pwm(pin, body[i + 1]);
+        i = static_cast<uint8_t>(i + 2);
+      } else {
+        hal::write_servo(pin, read_u16(body + i + 1));
+        i = static_cast<uint8_t>(i + 3);
+      }
+    }
+  }
+
+  out.begin(wire::kTick | wire::kReplyBit, seq);
+  out.put_u8(take_status());
+  out.put_u32(now_us);
+  const uint32_t rmask = read_u24(body + 3);
+  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+    if (!(rmask & (1UL << pin))) continue;
+    if (config_[pin].mode == wire::kModeAnalogIn) {
+      out.put_u16(hal::read_analog(pin));
+    } else {
+      out.put_u16(hal::read_digital(pin));
+    }
+  }
+}
+
+void Engine::on_estop(uint8_t seq, uint8_t body_len, FrameBuilder& out) {
+  if (body_len != 0) return error(seq, wire::kErrBadLength, wire::kEstop, out);
+  drive_safe();
+  flags_ |= wire::kStatusEstopped;
+  out.begin(wire::kEstop | wire::kReplyBit, seq);
+  out.put_u8(take_status());
+}
+
+void Engine::on_set_id(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuilder& out) {
+  if (len != 2) return error(seq, wire::kErrBadLength, wire::kSetId, out);
+  hal::store_board_id(read_u16(body));
+  out.begin(wire::kSetId | wire::kReplyBit, seq);
+  out.put_u16(hal::load_board_id());
+}
+
+}  // namespace hilswarm

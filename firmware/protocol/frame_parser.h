@@ -1,0 +1,42 @@
+// Byte-at-a-time frame parser: COBS-decodes, length-checks and CRC-checks incoming frames.
+// Never blocks, never allocates; garbage is discarded up to the next 0x00 (resynchronisation).
+#ifndef HILSWARM_PROTOCOL_FRAME_PARSER_H
+#define HILSWARM_PROTOCOL_FRAME_PARSER_H
+
+#include <stdint.h>
+
+#include "cobs.h"
+#include "wire.h"
+
+namespace hilswarm {
+
+class FrameParser {
+ public:
+  enum Result : uint8_t {
+    kNone = 0,      // byte consumed, no frame finished (also: an empty frame = idle line)
+    kFrame,         // a CRC-valid frame: payload() / payload_length()
+    kTooLong,       // decoded frame longer than payload + CRC limit (answer FRAME_TOO_LONG)
+    kTooShort,      // fewer than 4 decoded bytes (dropped silently, counted)
+    kBadCobs,       // last COBS block truncated (dropped silently, counted)
+    kBadCrc,        // CRC mismatch (dropped silently, counted)
+  };
+
+  FrameParser() : decoder_(buf_, wire::kMaxFrame) {}
+
+  // Consumes one received byte. Returns kFrame when `byte` completed a valid frame; the payload
+  // stays valid until the next call to feed().
+  Result feed(uint8_t byte);
+
+  // Type, seq and body of the last valid frame (CRC removed).
+  const uint8_t* payload() const { return buf_; }
+  uint8_t payload_length() const { return payload_len_; }
+
+ private:
+  uint8_t buf_[wire::kMaxFrame];
+  CobsDecoder decoder_;
+  uint8_t payload_len_ = 0;
+};
+
+}  // namespace hilswarm
+
+#endif  // HILSWARM_PROTOCOL_FRAME_PARSER_H

@@ -1,0 +1,64 @@
+// Request validation: pin capabilities and the CONFIG / TICK rules of docs/protocol.md.
+// A request is validated whole before anything is applied; the first problem found is returned
+// as (error code, detail) and nothing changes. Check order (shared with the Python codec):
+//   CONFIG: body length; every pin (range, reserved, listed twice); every mode (known,
+//           capability); the Timer1 conflict; every safe value.
+//   TICK:   body length (< 6); every dout bit; every rmask bit; then each write in wire order
+//           (pin mode, truncation, value). (NOT_CONFIGURED is checked first, by the engine.)
+#ifndef HILSWARM_PROTOCOL_REQUESTS_H
+#define HILSWARM_PROTOCOL_REQUESTS_H
+
+#include <stdint.h>
+
+#include "wire.h"
+
+namespace hilswarm {
+
+// One pin's configuration: mode and the value driven on watchdog trip / e-stop (wire units).
+struct PinConfig {
+  uint8_t mode;
+  uint16_t safe;
+};
+
+// Outcome of a check: code 0 = valid, else an ERROR code and its detail byte.
+struct RequestError {
+  uint8_t code;
+  uint8_t detail;
+  bool ok() const { return code == 0; }
+};
+
+// Capability bits of `pin` on an ATmega328P board (Uno, Duemilanove, Fio); 0 for pin >= 20.
+uint8_t pin_capabilities(uint8_t pin);
+
+// True if `mode` is a known mode the capabilities `caps` allow (UNUSED needs none).
+bool mode_allowed(uint8_t mode, uint8_t caps);
+
+// True if `value` is a legal safe value for `mode` (inputs: any value, it is ignored).
+bool safe_value_ok(uint8_t mode, uint16_t value);
+
+// True for DIGITAL_IN, DIGITAL_IN_PULLUP and ANALOG_IN.
+bool is_input_mode(uint8_t mode);
+
+// Validates a CONFIG body. On success fills `config` (kPinCount entries; unlisted pins UNUSED),
+// `*watchdog_ms` and `*n_entries` (pins listed in the request).
+RequestError check_config(const uint8_t* body, uint8_t len, PinConfig* config,
+                          uint16_t* watchdog_ms, uint8_t* n_entries);
+
+// Validates a TICK body against the current configuration (kPinCount entries).
+RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* config);
+
+// Little-endian readers.
+inline uint16_t read_u16(const uint8_t* p) {
+  return static_cast<uint16_t>(p[0] | (static_cast<uint16_t>(p[1]) << 8));
+}
+inline uint32_t read_u24(const uint8_t* p) {
+  return static_cast<uint32_t>(p[0]) | (static_cast<uint32_t>(p[1]) << 8) |
+         (static_cast<uint32_t>(p[2]) << 16);
+}
+
+// Size of the TICK body header (dout:u24 rmask:u24).
+const uint8_t kTickHeader = 6;
+
+}  // namespace hilswarm
+
+#endif  // HILSWARM_PROTOCOL_REQUESTS_H
