@@ -281,7 +281,9 @@ class SimBoard(Board):
         for entry in entries:
             pin = _as_pin(entry.pin)
             if pin is None or not 0 <= pin < PIN_COUNT:
-                raise _refuse(ErrorCode.BAD_PIN, f"no pin {entry.pin!r} (pins 0-{PIN_COUNT - 1})")
+                raise _refuse(
+                    ErrorCode.BAD_PIN, f"no pin {entry.pin!r} (pins 0-{PIN_COUNT - 1})", pin
+                )
             if Capability.RESERVED in self._capabilities[pin]:
                 raise _refuse(ErrorCode.BAD_PIN, "pin is reserved (serial link)", pin)
             if pin in seen:
