@@ -16,7 +16,7 @@ Parameters (``params=``, TOML-like)::
 
     plant = "spring_mass_damper"     # registry name or "package.module:Class" (a ContinuousPlant)
     plant_params = { m = 1.0, k1 = 1.0 }   # keyword arguments of the plant class
-    integrator = "euler"             # or "rk4"
+    integrator = "euler"             # or "rk4" (or a plant's own, e.g. "exact")
     substeps = 1                     # fixed steps per control period
 
 ``initial_state`` is the plant state at tick 0 (default zeros), ``dt`` [s] is required.
@@ -115,6 +115,20 @@ class SimulatedVehicle(Vehicle, abstract=True):
             self._x = self.initial_state.copy()
         self._time_s = 0.0
         self._advanced = False
+        try:  # a zero-length step checks the method with the plant (some have "exact")
+            self.plant.advance(
+                0.0,
+                self._x,
+                np.zeros(self.n_inputs),
+                0.0,
+                method=self.integrator,
+                substeps=self.substeps,
+            )
+        except HilswarmError as exc:
+            raise VehicleError(
+                f"vehicle {self.name!r}: params.integrator {self.integrator!r} / substeps "
+                f"{self.substeps!r} do not suit plant {type(self.plant).__name__}: {exc}"
+            ) from exc
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -122,9 +136,10 @@ class SimulatedVehicle(Vehicle, abstract=True):
         if params is not None and not isinstance(params, Mapping):
             raise VehicleError(f"{label}: params must be a mapping, got {params!r}")
         merged = {**cls.default_params, **(params or {})}
-        if merged["integrator"] not in METHODS:
+        if not isinstance(merged["integrator"], str):
             raise VehicleError(
-                f"{label}: params.integrator must be one of {METHODS}, got {merged['integrator']!r}"
+                f"{label}: params.integrator must be a method name such as {METHODS}, "
+                f"got {merged['integrator']!r}"
             )
         substeps = merged["substeps"]
         if isinstance(substeps, bool) or not isinstance(substeps, int) or substeps < 1:
@@ -148,6 +163,11 @@ class SimulatedVehicle(Vehicle, abstract=True):
             plant_class = resolve_plant(spec)
         except RegistryError as exc:
             raise VehicleError(f"{label}: params.plant: {exc}") from exc
+        if isinstance(plant_class, type) and not issubclass(plant_class, ContinuousPlant):
+            raise VehicleError(
+                f"{label}: params.plant {spec!r} is {plant_class.__qualname__}, "
+                "not a ContinuousPlant"
+            )
         try:
             plant = plant_class(**plant_params)
         except TypeError as exc:
