@@ -36,9 +36,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
-
 from hilswarm.agents.errors import PlantError
+from scipy.interpolate import PchipInterpolator
 
 __all__ = [
     "LAMB_TABLE",

@@ -59,11 +59,10 @@ from collections.abc import Mapping, Sequence
 from typing import Protocol
 
 import numpy as np
-from numpy.typing import ArrayLike
-
 from hilswarm.agents.errors import PlantError
 from hilswarm.agents.sim.blimp_params import DEFAULT_BLIMP_PARAMS, BlimpParams
 from hilswarm.agents.sim.plant import ContinuousPlant, integrate
+from numpy.typing import ArrayLike
 
 __all__ = [
     "INPUT_NAMES",
@@ -119,7 +118,9 @@ def full_state_from_reduced(reduced: ArrayLike) -> np.ndarray:
     """12-state vector from the reduced ``[u, v, w, r, x, y, z, ψ]`` (φ = θ = p = q = 0)."""
     s = np.asarray(reduced, dtype=float).reshape(-1)
     if s.shape != (8,):
-        raise PlantError(f"reduced blimp state must have 8 entries {REDUCED_STATE_NAMES}, got {s.shape}")
+        raise PlantError(
+            f"reduced blimp state must have 8 entries {REDUCED_STATE_NAMES}, got {s.shape}"
+        )
     x = np.zeros(12)
     x[list(REDUCED_INDEX)] = s
     return x

@@ -39,7 +39,6 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
-
 from hilswarm.agents.errors import PlantError
 from hilswarm.agents.sim.added_mass import AddedMass, added_mass, spheroid_volume
 
@@ -282,10 +281,7 @@ def _derived_defaults(params: BlimpParams) -> dict[str, Any]:
     if isinstance(mass, float) and math.isnan(mass):
         mass = params.air_density_kg_m3 * volume
     derived: dict[str, Any] = {"mass_kg": mass, "buoyancy_n": mass * params.gravity_m_s2}
-    if any(
-        isinstance(getattr(params, name), float) and math.isnan(getattr(params, name))
-        for name in ("cg_below_cb_m",)
-    ) or all(math.isnan(v) for v in params.inertia_kg_m2):
+    if math.isnan(params.cg_below_cb_m) or any(math.isnan(v) for v in params.inertia_kg_m2):
         r_z, inertia = _derived_inertia(
             mass, params.envelope_length_m, params.envelope_diameter_m, volume
         )
