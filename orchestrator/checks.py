@@ -37,7 +37,6 @@ from hilswarm.agents.errors import (
     HilswarmError,
     LinkUrlError,
     PinError,
-    PlantError,
     VehicleDefinitionError,
 )
 from hilswarm.agents.link.url import link_scheme
@@ -220,26 +219,17 @@ class _AgentCheck:
             kwargs["calibration"] = calibration
         try:
             self.vehicle = vehicle_cls(**kwargs)
-        except (PinError, DeviceError) as exc:
-            self.problem("pinout", str(exc))
-            return
-        except CalibrationError as exc:
-            self.problem("calibration", str(exc))
-            return
-        except PlantError as exc:
-            where = "initial_state" if "initial" in str(exc).lower() else "vehicle_params"
-            self.problem(where, str(exc))
-            return
         except VehicleDefinitionError as exc:
             self.problem("vehicle", f"vehicle {spec.vehicle!r} is defined badly: {exc}")
             return
         except (HilswarmError, ValueError, TypeError) as exc:
-            self.problem("vehicle_params", f"vehicle {spec.vehicle!r} rejects them: {exc}")
+            self.problem(_vehicle_error_key(exc), str(exc))
             return
-        self.n_inputs = int(vehicle_cls.n_inputs)
-        self.n_outputs = int(vehicle_cls.n_outputs)
-        self.n_inputs = int(getattr(self.vehicle, "n_inputs", self.n_inputs))
-        self.n_outputs = int(getattr(self.vehicle, "n_outputs", self.n_outputs))
+        # Sizes may be per instance (a simulated vehicle takes them from its plant).
+        n_inputs = getattr(self.vehicle, "n_inputs", None)
+        n_outputs = getattr(self.vehicle, "n_outputs", None)
+        if isinstance(n_inputs, int) and isinstance(n_outputs, int):
+            self.n_inputs, self.n_outputs = n_inputs, n_outputs
         self._check_initial_state(link_kind)
 
     def _check_link(self, vehicle_cls: Any) -> str | None:
@@ -398,6 +388,19 @@ class _AgentCheck:
                 f"({self.n_inputs} inputs, {self.n_outputs} outputs): a dry step with zero data "
                 f"failed: {exc}",
             )
+
+
+def _vehicle_error_key(exc: BaseException) -> str:
+    """The agent key a vehicle construction error is about."""
+    if isinstance(exc, PinError | DeviceError):
+        return "pinout"
+    if isinstance(exc, CalibrationError):
+        return "calibration"
+    text = str(exc)
+    for key in ("pinout", "initial_state", "calibration", "limits"):
+        if key in text:
+            return "vehicle" if key == "limits" else key
+    return "vehicle_params"
 
 
 #: Marker: the calibration could not be loaded (a problem was reported).

@@ -277,7 +277,10 @@ class _Parser:
     def parse(self, overrides: Mapping[str, Any]) -> Experiment | None:
         self._unknown_keys(self.data, TOP_LEVEL_KEYS, "")
         header = self._table(self.data, "experiment", required=True)
-        settings = self._settings(header)
+        if "experiment" in self.data:
+            settings = self._settings(header)
+        else:  # reported once above, not once per missing key
+            settings = dict.fromkeys(EXPERIMENT_KEYS)
         self._apply_overrides(settings, overrides)
         defaults = self._table(self.data, "defaults", required=False)
         self._unknown_keys(defaults, AGENT_KEYS, "defaults")

@@ -52,7 +52,12 @@ def summary(report: CheckReport) -> str:
         f"{experiment.mode}, on agent loss: {experiment.on_agent_loss}"
     ]
     if facts is not None:
-        tree = f"spanning tree from {', '.join(facts.roots)}" if facts.roots else "no spanning tree"
+        if facts.strongly_connected:
+            tree = "strongly connected"
+        elif facts.roots:
+            tree = f"spanning tree from {', '.join(facts.roots)}"
+        else:
+            tree = "no spanning tree"
         lines.append(
             f"graph: {facts.n_edges} edges, "
             f"{'connected' if facts.weakly_connected else 'NOT connected'}, {tree}, "

@@ -1,0 +1,230 @@
+"""``hilswarm check``: every error class, reported as file:key: reason with exit status 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hilswarm.orchestrator.checks import check_file
+from hilswarm.orchestrator.cli import main
+
+DATA = Path(__file__).resolve().parent / "data"
+GRAPHS = Path(__file__).resolve().parents[2] / "graphs"
+
+#: broken file -> (file the problem is in, key, part of the reason)
+CASES: dict[str, tuple[str, str, str]] = {
+    # structure: file, [experiment]
+    "not_toml.toml": ("not_toml.toml", "", "not valid TOML"),
+    "missing_experiment.toml": ("missing_experiment.toml", "experiment", "missing [experiment]"),
+    "bad_name.toml": ("bad_name.toml", "experiment.name", "'my run' is not a valid name"),
+    "bad_rate.toml": ("bad_rate.toml", "experiment.rate_hz", "0 Hz is out of range"),
+    "bad_duration.toml": ("bad_duration.toml", "experiment.duration_s", "expected a duration > 0"),
+    "bad_mode.toml": ("bad_mode.toml", "experiment.mode", "'fast' is not one of"),
+    "bad_agent_loss.toml": (
+        "bad_agent_loss.toml",
+        "experiment.on_agent_loss",
+        "'retry' is not one of",
+    ),
+    "unknown_key.toml": ("unknown_key.toml", "experiment.rate", "unknown key"),
+    "watchdog_short.toml": (
+        "watchdog_short.toml",
+        "experiment.watchdog_s",
+        "not longer than the control period",
+    ),
+    # the graph
+    "nonsquare.toml": ("nonsquare.toml", "graph.adjacency[1]", "must be square"),
+    "not_zero_one.toml": ("not_zero_one.toml", "graph.adjacency[0][1]", "expected 0 or 1"),
+    "diagonal.toml": ("diagonal.toml", "graph.adjacency[1][1]", "the diagonal must be 0"),
+    "graph_name_without_table.toml": (
+        "graph_name_without_table.toml",
+        "graph.agents[3]",
+        "has no [agents.d] table",
+    ),
+    "table_not_in_graph.toml": ("table_not_in_graph.toml", "agents.c", "is not in the graph"),
+    "duplicate_agent.toml": ("duplicate_agent.toml", "graph.agents[1]", "listed twice"),
+    "bad_agent_name.toml": ("bad_agent_name.toml", "agents.c c", "not a valid agent name"),
+    "graph_both_forms.toml": ("graph_both_forms.toml", "graph", "exactly one of"),
+    "missing_graph_file.toml": ("missing_graph_file.toml", "graph.file", "does not exist"),
+    "bad_csv_graph.toml": ("bad_matrix.csv", "matrix[1][0]", "expected 0 or 1"),
+    # registry
+    "unknown_vehicle.toml": ("unknown_vehicle.toml", "agents.a.vehicle", "unknown vehicle"),
+    "unknown_controller.toml": (
+        "unknown_controller.toml",
+        "agents.a.controller",
+        "unknown controller 'mpc'",
+    ),
+    # links
+    "bad_link.toml": ("bad_link.toml", "agents.leader.link", "unknown scheme 'ftp'"),
+    "missing_link.toml": ("missing_link.toml", "agents.leader.link", "needs a board"),
+    "shared_serial.toml": ("shared_serial.toml", "agents.f1.link", "already the link of agent"),
+    # pins (vehicles built without a board)
+    "pin_conflict.toml": ("pin_conflict.toml", "agents.leader.pinout", "already bound"),
+    "pin_no_pwm.toml": ("pin_no_pwm.toml", "agents.f1.pinout", "has no PWM"),
+    "unknown_pinout_device.toml": (
+        "unknown_pinout_device.toml",
+        "agents.leader.pinout",
+        "unknown device 'wheels'",
+    ),
+    # vehicle parameters and state
+    "bad_vehicle_params.toml": (
+        "bad_vehicle_params.toml",
+        "agents.c.vehicle_params",
+        "unknown parameter(s) ['colour']",
+    ),
+    "initial_state_length.toml": (
+        "initial_state_length.toml",
+        "agents.a.initial_state",
+        "must have 2 entries",
+    ),
+    "missing_calibration.toml": (
+        "missing_calibration.toml",
+        "agents.leader.calibration",
+        "does not exist",
+    ),
+    "bad_calibration.toml": (
+        "bad_calibration.toml",
+        "agents.leader.calibration",
+        "strictly increasing",
+    ),
+    # controllers
+    "bad_params.toml": ("bad_params.toml", "agents.b.params", "'gain' must be a number > 0"),
+    "controller_mismatch.toml": (
+        "controller_mismatch.toml",
+        "agents.a.controller",
+        "does not fit vehicle",
+    ),
+    "leader_not_heard.toml": (
+        "leader_not_heard.toml",
+        "agents.f1.params.leader",
+        "does not hear its leader 'leader'",
+    ),
+    "leader_unknown.toml": ("leader_unknown.toml", "agents.f1.params.leader", "'boss'"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_every_error_class_exits_2_with_file_key_reason(
+    name: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    file_name, key, reason = CASES[name]
+    path = DATA / name
+    status = main(["check", str(path)])
+    out, err = capsys.readouterr()
+    assert status == 2, out + err
+    assert "Traceback" not in out + err
+    where = str(path.parent / file_name) if file_name != name else str(path)
+    if file_name.endswith(".csv"):
+        where = str((DATA / file_name).resolve())
+    prefix = f"{where}:{key}: " if key else f"{where}: "
+    lines = [line for line in err.splitlines() if line.startswith(prefix)]
+    assert lines, f"no line starting with {prefix!r} in:\n{err}"
+    assert any(reason in line for line in lines), f"{reason!r} not in {lines}"
+    assert "problem" in err.splitlines()[-1]
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_check_file_reports_the_same_problem(name: str) -> None:
+    _, key, reason = CASES[name]
+    report = check_file(DATA / name)
+    assert not report.ok
+    assert any(p.key == key and reason in p.message for p in report.problems), report.problems
+
+
+def test_several_problems_are_reported_together(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (DATA / "bad_params.toml").read_text()
+    text = text.replace('name = "t"', 'name = "t"\nmode = "fast"')
+    text = text.replace("[agents.a]\n", '[agents.a]\nvehicle = "hovercraft"\n')
+    path = tmp_path / "many.toml"
+    path.write_text(text)
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err
+    # Structure problems stop before the deep checks; fix them and the deep ones show.
+    assert f"{path}:experiment.mode:" in err
+    path.write_text(text.replace('mode = "fast"\n', ""))
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:agents.a.vehicle:" in err
+    assert f"{path}:agents.b.params:" in err
+    assert "2 problems" in err
+
+
+def test_link_override_of_unknown_agent(capsys: pytest.CaptureFixture[str]) -> None:
+    path = GRAPHS / "lead_follow.toml"
+    assert main(["check", str(path), "--link", "nobody=/dev/ttyUSB0"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:--link nobody: no agent named 'nobody'" in err
+    assert main(["check", str(path), "--link", "leader"]) == 2
+    assert "expected NAME=URL" in capsys.readouterr().err
+
+
+def test_link_override_is_checked_deeply(capsys: pytest.CaptureFixture[str]) -> None:
+    path = GRAPHS / "lead_follow.toml"
+    assert main(["check", str(path), "--link", "leader=gopher://x"]) == 2
+    assert f"{path}:agents.leader.link: link URL 'gopher://x'" in capsys.readouterr().err
+    assert main(["check", str(path), "--link", "leader=/dev/ttyUSB0"]) == 0
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        "spring_mass_damper.toml",
+        "lead_follow.toml",
+        "consensus_ring.toml",
+        "consensus_ring_file.toml",
+    ],
+)
+def test_example_files_are_valid(name: str, capsys: pytest.CaptureFixture[str]) -> None:
+    path = GRAPHS / name
+    assert main(["check", str(path)]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("ok: ")
+    assert "warning" not in err
+
+
+def test_warnings_do_not_fail_unless_strict(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (GRAPHS / "consensus_ring.toml").read_text()
+    text = text.replace("params = { gain = 1.0 }", "params = { gain = 10.0 }")
+    path = tmp_path / "fast_gain.toml"
+    path.write_text(text)
+    assert main(["check", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {path}:agents.a0.params.gain:" in err
+    assert "gain * dt * in-degree" in err
+    assert main(["check", str(path), "--strict"]) == 2
+
+
+def test_disconnected_graph_is_a_warning(tmp_path: Path) -> None:
+    text = (GRAPHS / "consensus_ring.toml").read_text()
+    start = text.index("adjacency = [[")
+    end = text.index("]]", start) + 2
+    text = (
+        text[:start]
+        + "adjacency = [[0,1,0,0,0,0],[1,0,0,0,0,0],[0,0,0,1,0,0],"
+        + "[0,0,1,0,0,0],[0,0,0,0,0,1],[0,0,0,0,1,0]]"
+        + text[end:]
+    )
+    path = tmp_path / "split.toml"
+    path.write_text(text)
+    report = check_file(path)
+    assert report.ok
+    keys = [w.key for w in report.warnings]
+    assert "graph" in keys
+    assert "agents.a0.controller" in keys  # consensus without a spanning tree
+
+
+def test_graph_command(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["graph", str(GRAPHS / "lead_follow.toml"), "--matrix"]) == 0
+    out = capsys.readouterr().out
+    assert "leaders (hear nobody): leader" in out
+    assert "spanning tree (consensus possible): yes  roots: leader" in out
+    assert main(["graph", str(GRAPHS / "consensus_ring.toml"), "--json"]) == 0
+    import json
+
+    data = json.loads(capsys.readouterr().out)
+    assert data["in_degree"]["a0"] == 3 and data["strongly_connected"]
+    assert main(["graph", str(DATA / "diagonal.toml")]) == 2
+    assert "graph.adjacency[1][1]" in capsys.readouterr().err
