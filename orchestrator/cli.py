@@ -14,6 +14,7 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from types import ModuleType
 
 from hilswarm.agents.errors import HilswarmError
 
@@ -32,7 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def _command_module(name: str):  # noqa: ANN202 - module object
+def _command_module(name: str) -> ModuleType:
     module_name, _ = COMMANDS[name]
     return importlib.import_module(f"hilswarm.orchestrator.commands.{module_name}")
 
