@@ -52,7 +52,7 @@ from hilswarm.agents.link.board import (
     TickReply,
     pin_name,
 )
-from hilswarm.agents.pins import BoardProfile, get_profile
+from hilswarm.agents.pins import BoardProfile, get_profile, parse_pin
 
 logger = logging.getLogger(__name__)
 
@@ -494,18 +494,28 @@ class SimBoard(Board):
         return 1 if mode is PinMode.DIGITAL_IN_PULLUP else 0
 
     # ------------------------------------------------------------------ test hooks
-    def set_analog_input(self, pin: int, volts: float) -> None:
-        """Put ``volts`` [V] on ``pin`` (until the plant reports another voltage for it)."""
-        number = _as_pin(pin)
-        if number is None or not 0 <= number < PIN_COUNT or not math.isfinite(volts):
-            raise ValueError(f"set_analog_input: bad pin {pin!r} or voltage {volts!r}")
+    def set_analog_input(self, pin: int | str, volts: float) -> None:
+        """Put ``volts`` [V] on ``pin`` (13, ``"A0"``) until the plant reports another voltage.
+
+        Raises:
+            ValueError: unknown pin or non-finite voltage.
+        """
+        number = parse_pin(pin, self.profile)
+        if not _is_real(volts):
+            raise ValueError(
+                f"set_analog_input: voltage for pin {pin!r} must be finite, got {volts!r}"
+            )
         self._volts[number] = float(volts)
 
-    def set_digital_input(self, pin: int, level: int | bool) -> None:
-        """Hold the digital input ``pin`` at ``level`` (0/1) for every later sample."""
-        number = _as_pin(pin)
-        if number is None or not 0 <= number < PIN_COUNT or int(level) not in (0, 1):
-            raise ValueError(f"set_digital_input: bad pin {pin!r} or level {level!r}")
+    def set_digital_input(self, pin: int | str, level: int | bool) -> None:
+        """Hold the digital input ``pin`` (13, ``"A0"``) at ``level`` (0/1) for later samples.
+
+        Raises:
+            ValueError: unknown pin or a level other than 0/1.
+        """
+        number = parse_pin(pin, self.profile)
+        if level not in (0, 1):
+            raise ValueError(f"set_digital_input: level for pin {pin!r} must be 0/1, got {level!r}")
         self._digital_levels[number] = int(level)
 
     def power_cycle(self, *, hw_watchdog: bool = False) -> None:
