@@ -94,8 +94,11 @@ def test_euler_error_shrinks_with_the_period(gain: np.ndarray) -> None:
     gaps = []
     for dt in (0.1, 0.05, 0.025):
         n = tick_count(6.0, dt)
-        gaps.append(max_abs_difference(shil(gain, dt=dt, n_ticks=n),
-                                       sil_adaptive(gain, dt=dt, n_ticks=n, rtol=1e-9)))
+        gaps.append(
+            max_abs_difference(
+                shil(gain, dt=dt, n_ticks=n), sil_adaptive(gain, dt=dt, n_ticks=n, rtol=1e-9)
+            )
+        )
     ratios = [gaps[0] / gaps[1], gaps[1] / gaps[2]]
     assert all(1.6 < r < 2.5 for r in ratios), (gaps, ratios)
 
@@ -114,14 +117,27 @@ def test_shil_with_rk4_plant_tracks_a_sampled_data_loop(gain: np.ndarray) -> Non
 
 def test_figure_script_writes_pngs(tmp_path: Path) -> None:
     result = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "reproduce_chapter3.py"), "--out",
-         str(tmp_path / "figs"), "--duration", "3"],
-        capture_output=True, text=True, timeout=120, check=False,
+        [
+            sys.executable,
+            str(ROOT / "scripts" / "reproduce_chapter3.py"),
+            "--out",
+            str(tmp_path / "figs"),
+            "--duration",
+            "3",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
     )
     assert result.returncode == 0, result.stderr
     pngs = sorted(p.name for p in (tmp_path / "figs").glob("*.png"))
-    assert pngs == ["comparison.png", "fig3_3a_sil_rk45.png", "fig3_3b_sil_euler.png",
-                    "fig3_4_shil.png"]
+    assert pngs == [
+        "comparison.png",
+        "fig3_3a_sil_rk45.png",
+        "fig3_3b_sil_euler.png",
+        "fig3_4_shil.png",
+    ]
     for name in pngs:
         assert (tmp_path / "figs" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "max |SHIL - SIL-Euler| = 0.000e+00" in result.stdout
