@@ -47,7 +47,6 @@ from enum import IntEnum
 from typing import Any, ClassVar
 
 import numpy as np
-
 from hilswarm.agents.control import Controller, TickInput, param_vector
 from hilswarm.agents.controllers.blimp_trim import (
     DEFAULT_GRID,
@@ -224,9 +223,21 @@ class BlimpFlightController(Controller):
     }
 
     _POSITIVE: ClassVar[tuple[str, ...]] = (
-        "cruise_speed", "approach_time_s", "z_enter", "z_exit", "heading_enter", "heading_exit",
-        "distance_enter", "distance_exit", "settle_speed", "settle_rate", "thrust_rate_n_s",
-        "servo_rate_rad_s", "estimator_alpha", "estimator_beta", "blend_angle",
+        "cruise_speed",
+        "approach_time_s",
+        "z_enter",
+        "z_exit",
+        "heading_enter",
+        "heading_exit",
+        "distance_enter",
+        "distance_exit",
+        "settle_speed",
+        "settle_rate",
+        "thrust_rate_n_s",
+        "servo_rate_rad_s",
+        "estimator_alpha",
+        "estimator_beta",
+        "blend_angle",
     )
 
     def validate_params(self, params: Mapping[str, Any]) -> dict[str, Any]:
@@ -234,7 +245,11 @@ class BlimpFlightController(Controller):
         merged["waypoint"] = param_vector(self, "waypoint", merged["waypoint"], 3)
         heading = merged["heading"]
         if heading is not None:
-            if isinstance(heading, bool) or not isinstance(heading, int | float) or not math.isfinite(heading):
+            if (
+                isinstance(heading, bool)
+                or not isinstance(heading, int | float)
+                or not math.isfinite(heading)
+            ):
                 raise ControllerError(
                     f"{self.name}: parameter 'heading' must be a finite angle [rad] or None, "
                     f"got {heading!r}"
@@ -242,8 +257,10 @@ class BlimpFlightController(Controller):
             merged["heading"] = wrap_angle(float(heading))
         for name in self._POSITIVE:
             value = merged[name]
-            if isinstance(value, bool) or not isinstance(value, int | float) or not (
-                math.isfinite(value) and value > 0
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not (math.isfinite(value) and value > 0)
             ):
                 raise ControllerError(
                     f"{self.name}: parameter {name!r} must be a finite number > 0, got {value!r}"
@@ -284,13 +301,16 @@ class BlimpFlightController(Controller):
             weights[mode.value] = tuple(float(v) for v in vector)
             merged[key] = weights[mode.value]
         thrust_weight = merged["weight_thrust_n"]
-        if isinstance(thrust_weight, bool) or not isinstance(thrust_weight, int | float) or not (
-            math.isfinite(thrust_weight) and thrust_weight > 0
+        if (
+            isinstance(thrust_weight, bool)
+            or not isinstance(thrust_weight, int | float)
+            or not (math.isfinite(thrust_weight) and thrust_weight > 0)
         ):
             raise ControllerError(
                 f"{self.name}: parameter 'weight_thrust_n' must be > 0 [N], got {thrust_weight!r}"
             )
         merged["weight_thrust_n"] = float(thrust_weight)
+        self.schedule(merged)  # build (or fetch) the gain schedule now, not at the first tick
         if not 0 < merged["cruise_speed"] <= grid.airspeeds[-1]:
             raise ControllerError(
                 f"{self.name}: cruise_speed {merged['cruise_speed']} m/s must be within the "
@@ -357,7 +377,14 @@ class BlimpFlightController(Controller):
         )
         new_mode = next_mode(mode, seen, params)
         if new_mode is not mode:
-            self._enter(state, new_mode, mode, far, waypoint, path_heading)
+            self._enter(
+                state=state,
+                mode=new_mode,
+                previous=mode,
+                far=far,
+                waypoint=waypoint,
+                path_heading=path_heading,
+            )
             mode = new_mode
         else:
             state[StateIndex.MODE_TIME] += tick.dt
@@ -394,6 +421,7 @@ class BlimpFlightController(Controller):
 
     def _enter(
         self,
+        *,
         state: np.ndarray,
         mode: Mode,
         previous: Mode,
@@ -485,4 +513,3 @@ class BlimpFlightController(Controller):
         previous = state[[StateIndex.T_LEFT, StateIndex.T_RIGHT]]
         thrusts = previous + np.clip(thrusts - previous, -step, step)
         return np.array([thrusts[0], thrusts[1], mu])
-

@@ -44,13 +44,12 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 
 import numpy as np
-from numpy.typing import ArrayLike
-from scipy.linalg import solve_continuous_are
-from scipy.optimize import least_squares
-
 from hilswarm.agents.errors import ControllerError
 from hilswarm.agents.sim.blimp import BlimpPlant, wrap_angle
 from hilswarm.agents.sim.blimp_params import DEFAULT_BLIMP_PARAMS, BlimpParams
+from numpy.typing import ArrayLike
+from scipy.linalg import solve_continuous_are
+from scipy.optimize import least_squares
 
 logger = logging.getLogger(__name__)
 
@@ -116,12 +115,19 @@ class ScheduleGrid:
                 f"ScheduleGrid.airspeeds must start at 0 and increase (>= 2 entries) [m/s], "
                 f"got {self.airspeeds}"
             )
-        if isinstance(self.headings, bool) or not isinstance(self.headings, int) or self.headings < 4:
-            raise ControllerError(f"ScheduleGrid.headings must be an int >= 4, got {self.headings!r}")
+        if (
+            isinstance(self.headings, bool)
+            or not isinstance(self.headings, int)
+            or self.headings < 4
+        ):
+            raise ControllerError(
+                f"ScheduleGrid.headings must be an int >= 4, got {self.headings!r}"
+            )
         for needed in MODE_THRUST_ANGLE.values():
             if not any(math.isclose(a, needed, abs_tol=1e-12) for a in self.thrust_angles):
                 raise ControllerError(
-                    f"ScheduleGrid.thrust_angles must contain {needed} rad, got {self.thrust_angles}"
+                    f"ScheduleGrid.thrust_angles must contain {needed} rad, "
+                    f"got {self.thrust_angles}"
                 )
 
     @property
@@ -460,12 +466,14 @@ class GainSchedule:
         for index, value in enumerate(self.grid.thrust_angles):
             if math.isclose(value, angle, abs_tol=1e-12):
                 return index
-        raise ControllerError(f"thrust angle {angle} rad is not on the grid {self.grid.thrust_angles}")
+        raise ControllerError(
+            f"thrust angle {angle} rad is not on the grid {self.grid.thrust_angles}"
+        )
 
     def _heading_weights(self, heading: float) -> tuple[int, int, float]:
         n = self.grid.headings
         position = (wrap_angle(heading) + math.pi) / (2.0 * math.pi) * n
-        lower = int(math.floor(position)) % n
+        lower = math.floor(position) % n
         fraction = position - math.floor(position)
         return lower, (lower + 1) % n, fraction
 
@@ -483,7 +491,11 @@ class GainSchedule:
         return i, i + 1, fraction
 
     def _blend(
-        self, mode: FlightMode, airspeed: float, heading: float, pick: Callable[[int, int], np.ndarray]
+        self,
+        mode: FlightMode,
+        airspeed: float,
+        heading: float,
+        pick: Callable[[int, int], np.ndarray],
     ) -> np.ndarray:
         i0, i1, fv = self._speed_weights(mode, airspeed)
         j0, j1, fh = self._heading_weights(heading)
@@ -542,6 +554,8 @@ def grid_from_values(
 ) -> ScheduleGrid:
     """A :class:`ScheduleGrid` with some fields replaced (``None`` keeps the default)."""
     return ScheduleGrid(
-        airspeeds=tuple(float(v) for v in airspeeds) if airspeeds is not None else DEFAULT_GRID.airspeeds,
+        airspeeds=tuple(float(v) for v in airspeeds)
+        if airspeeds is not None
+        else DEFAULT_GRID.airspeeds,
         headings=headings if headings is not None else DEFAULT_GRID.headings,
     )

@@ -177,9 +177,7 @@ class BlimpPlant(ContinuousPlant):
         total, diff = t_l + t_r, t_l - t_r
         cm, sm = math.cos(mu), math.sin(mu)
         arm = p.thruster_arm_m
-        propulsive = np.array(
-            [total * cm, 0.0, total * sm, -diff * sm * arm, 0.0, diff * cm * arm]
-        )
+        propulsive = np.array([total * cm, 0.0, total * sm, -diff * sm * arm, 0.0, diff * cm * arm])
         damping = -(self._d_lin + self._d_quad * np.abs(vel)) * vel
         cf, sf, ct, st = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
         net_weight = p.mass_kg * p.gravity_m_s2 - p.buoyancy_n
@@ -248,9 +246,7 @@ class BlimpPlant(ContinuousPlant):
         )
         yaw = state[5]
         position_rate = rotation_body_to_world(0.0, 0.0, yaw) @ state[6:9]
-        return np.array(
-            [accel[0], accel[1], accel[2], accel[5], *position_rate, state[11]]
-        )
+        return np.array([accel[0], accel[1], accel[2], accel[5], *position_rate, state[11]])
 
     # -- bookkeeping -------------------------------------------------------------------------
 

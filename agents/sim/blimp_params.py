@@ -104,11 +104,11 @@ class BatteryParams:
     def open_circuit_v(self, charge: float) -> float:
         """Open-circuit pack voltage [V] at state of charge ``charge`` (0..1).
 
-        Piecewise-linear LiPo curve per cell: 3.3 V empty, 3.6 V at 10 %, 3.7 V at 50 %,
-        3.85 V at 80 %, 4.2 V full.
+        Piecewise-linear LiPo curve per cell: 3.0 V empty (cut-off), 3.3 V at 5 %, 3.6 V at
+        10 %, 3.7 V at 50 %, 3.85 V at 80 %, 4.2 V full.
         """
-        soc = (0.0, 0.1, 0.5, 0.8, 1.0)
-        cell_v = (3.3, 3.6, 3.7, 3.85, 4.2)
+        soc = (0.0, 0.05, 0.1, 0.5, 0.8, 1.0)
+        cell_v = (3.0, 3.3, 3.6, 3.7, 3.85, 4.2)
         return self.cells * float(np.interp(min(max(charge, 0.0), 1.0), soc, cell_v))
 
 
@@ -145,10 +145,20 @@ class BlimpParams:
     cg_below_cb_m: float = float("nan")
     inertia_kg_m2: tuple[float, float, float] = (math.nan, math.nan, math.nan)
     damping_linear: tuple[float, float, float, float, float, float] = (
-        0.02, 0.05, 0.05, 0.02, 0.02, 0.005,
+        0.02,
+        0.05,
+        0.05,
+        0.02,
+        0.02,
+        0.005,
     )
     damping_quadratic: tuple[float, float, float, float, float, float] = (
-        0.059, 0.31, 0.31, 0.01, 0.017, 0.017,
+        0.059,
+        0.31,
+        0.31,
+        0.01,
+        0.017,
+        0.017,
     )
     thruster_arm_m: float = 2.5 * INCH_M
     thrust_limit_n: float = 0.0637
@@ -174,8 +184,13 @@ class BlimpParams:
 
     def _validate(self) -> None:
         positive = (
-            "envelope_length_m", "envelope_diameter_m", "air_density_kg_m3", "gravity_m_s2",
-            "mass_kg", "thruster_arm_m", "thrust_limit_n",
+            "envelope_length_m",
+            "envelope_diameter_m",
+            "air_density_kg_m3",
+            "gravity_m_s2",
+            "mass_kg",
+            "thruster_arm_m",
+            "thrust_limit_n",
         )
         for name in positive:
             value = getattr(self, name)

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
 from hilswarm.agents.control import ControlModel
 from hilswarm.agents.controllers.blimp_flight import BlimpFlightController, Mode, StateIndex
 from hilswarm.agents.errors import PlantError
@@ -137,7 +136,11 @@ class ScenarioResult:
         """Input direction reversals (chattering), optionally only inside ``modes``."""
         mask = None if modes is None else np.isin(self.modes, [int(m) for m in modes])
         p = DEFAULT_BLIMP_PARAMS
-        spans = (2 * p.thrust_limit_n, 2 * p.thrust_limit_n, p.thrust_angle_max_rad - p.thrust_angle_min_rad)
+        spans = (
+            2 * p.thrust_limit_n,
+            2 * p.thrust_limit_n,
+            p.thrust_angle_max_rad - p.thrust_angle_min_rad,
+        )
         return {
             name: reversal_count(self.inputs[:, i], threshold=0.01 * spans[i], mask=mask)
             for i, name in enumerate(("thrust_left", "thrust_right", "thrust_angle"))
@@ -154,14 +157,14 @@ def saturation_count(
     """Per input, the number of samples at (or beyond) a limit."""
     names = ("thrust_left", "thrust_right", "thrust_angle")
     return {
-        name: int(np.count_nonzero((inputs[:, i] <= lower[i] + tol) | (inputs[:, i] >= upper[i] - tol)))
+        name: int(
+            np.count_nonzero((inputs[:, i] <= lower[i] + tol) | (inputs[:, i] >= upper[i] - tol))
+        )
         for i, name in enumerate(names)
     }
 
 
-def reversal_count(
-    signal: np.ndarray, *, threshold: float, mask: np.ndarray | None = None
-) -> int:
+def reversal_count(signal: np.ndarray, *, threshold: float, mask: np.ndarray | None = None) -> int:
     """How often a signal changes direction by steps larger than ``threshold``.
 
     Only increments larger than ``threshold`` in magnitude count as moves; a reversal is a move
@@ -199,13 +202,16 @@ def run_scenario(
     """
     if isinstance(scenario, str):
         if scenario not in SCENARIOS:
-            raise PlantError(f"unknown blimp scenario {scenario!r}; expected one of {sorted(SCENARIOS)}")
+            raise PlantError(
+                f"unknown blimp scenario {scenario!r}; expected one of {sorted(SCENARIOS)}"
+            )
         scenario = SCENARIOS[scenario]
     plant = BlimpPlant()
     controller = BlimpFlightController()
     params = {**scenario.params, **(controller_params or {})}
     model = ControlModel(controller, dt=dt, n_inputs=3, n_outputs=4, params=params)
-    steps = int(round((duration_s if duration_s is not None else scenario.duration_s) / dt))
+    span_s = duration_s if duration_s is not None else scenario.duration_s
+    steps = round(span_s / dt)
     x = plant.initial_state(scenario.initial_pose)
     u = np.array([0.0, 0.0, 0.0])
     t = np.arange(steps + 1) * dt
