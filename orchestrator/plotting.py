@@ -35,7 +35,13 @@ from matplotlib.figure import Figure
 logger = logging.getLogger(__name__)
 
 #: Keys of /orchestrator/ticks tried in order as "the tick latency" [s].
-TICK_LATENCY_KEYS: tuple[str, ...] = ("duration_s", "latency_s", "round_trip_s", "elapsed_s")
+TICK_LATENCY_KEYS: tuple[str, ...] = (
+    "completion_s",
+    "duration_s",
+    "latency_s",
+    "round_trip_s",
+    "elapsed_s",
+)
 #: More agents than this and the legends are left out (they would cover the data).
 MAX_LEGEND_ENTRIES = 12
 _DPI = 120
