@@ -22,6 +22,12 @@ class FrameParser {
   };
 
   FrameParser() : decoder_(buf_, wire::kMaxFrame) {}
+  // Not copyable: the decoder points into this object's own buffer.
+  FrameParser(const FrameParser&) = delete;
+  FrameParser& operator=(const FrameParser&) = delete;
+
+  // Forgets any partial frame (the next byte starts a new one).
+  void reset() { decoder_.reset(); }
 
   // Consumes one received byte. Returns kFrame when `byte` completed a valid frame; the payload
   // stays valid until the next call to feed().
