@@ -211,3 +211,16 @@ def test_file_errors_name_file_key_and_value(
 def test_missing_file_is_named(tmp_path: Path) -> None:
     with pytest.raises(CalibrationError, match=r"nope\.toml"):
         Calibration.from_file(tmp_path / "nope.toml")
+
+
+def test_remaining_calibration_errors_are_named(tmp_path: Path) -> None:
+    with pytest.raises(CalibrationError, match="input name"):
+        CalibrationCurve.build("", U, PWM)
+    with pytest.raises(CalibrationError, match=r"'v'.*unit"):
+        CalibrationCurve.build("v", U, PWM, unit=3)  # type: ignore[arg-type]
+    with pytest.raises(CalibrationError, match=r"'v'.*pwm.*not finite"):
+        calibration().to_u("v", float("inf"))
+    with pytest.raises(CalibrationError, match="not a CalibrationCurve"):
+        Calibration(["v"])  # type: ignore[list-item]
+    with pytest.raises(CalibrationError, match="cannot write"):
+        calibration().save(tmp_path / "missing-dir" / "cal.toml")

@@ -347,3 +347,23 @@ def test_battery_needs_an_analog_pin_and_callable_listeners() -> None:
         Battery(PinManager(), "batt", {"pin": 5})
     with pytest.raises(DeviceError, match="callable"):
         Battery(PinManager(), "batt", {"pin": "A1"}).add_listener(42)  # type: ignore[arg-type]
+
+
+def test_remaining_device_errors_are_named() -> None:
+    drive = motor()
+    with pytest.raises(DeviceError, match="'center'"):
+        drive.duty("center")
+    led = OutputPin(PinManager(), "led", {"pin": 3}, mode="pwm")
+    with pytest.raises(DeviceError, match=r"'led'.*not a number"):
+        led.actuate("bright")  # type: ignore[arg-type]
+    with pytest.raises(DeviceError, match=r"'led'.*not finite"):
+        led.actuate(float("inf"))
+    with pytest.raises(DeviceError, match="max_value"):
+        OutputPin(PinManager(), "x", {"pin": 3}, max_value=1)
+    with pytest.raises(DeviceError, match=r"'s'.*min_pulse_us"):
+        Servo(PinManager(), "s", {"pin": 9}, min_pulse_us=True)  # type: ignore[arg-type]
+    with pytest.raises(DeviceError, match="PinManager"):
+        OutputPin({}, "x", {"pin": 3})  # type: ignore[arg-type]
+    battery = Battery(PinManager(), "batt", {"pin": "A0"})
+    battery.remove_listener(print)  # not registered: no error
+    assert battery.volts is None and not battery.is_low

@@ -356,3 +356,55 @@ def test_estop_through_the_manager() -> None:
 
 def test_board_is_an_abstract_interface() -> None:
     assert issubclass(SimBoard, Board)
+
+
+# ---------------------------------------------------------------- remaining error paths
+@pytest.mark.parametrize(
+    ("kwargs", "culprit"),
+    [
+        ({"device": "", "binder": "x.pin", "mode": PinMode.DIGITAL_OUT}, "device name"),
+        ({"device": "x", "binder": "", "mode": PinMode.DIGITAL_OUT}, "binder name"),
+        ({"device": "x", "binder": "x.pin", "mode": 42}, "unknown pin mode 42"),
+        ({"device": "x", "binder": "x.pin", "mode": PinMode.PWM, "safe_value": 1.5}, "1.5"),
+        ({"device": "x", "binder": "x.pin", "mode": PinMode.DIGITAL_IN, "safe_value": 1}, "inputs"),
+    ],
+)
+def test_assign_argument_errors_are_named(kwargs: dict, culprit: str) -> None:
+    with pytest.raises(PinError) as info:
+        manager().assign(3, **kwargs)
+    assert culprit in str(info.value)
+
+
+def test_staged_of_an_input_and_samples_before_exchange() -> None:
+    pm = manager()
+    pm.assign("A0", device="b", binder="b.pin", mode=PinMode.ANALOG_IN)
+    with pytest.raises(PinError, match=r"b\.pin.*input"):
+        pm.staged("b.pin")
+    assert pm.samples() == {}
+
+
+class ForgetfulBoard(SimBoard):
+    """Answers without the samples it was asked for."""
+
+    def exchange(self, writes, reads) -> TickReply:  # type: ignore[no-untyped-def]
+        reply = super().exchange(writes, reads)
+        return TickReply(reply.seq, reply.status, reply.board_time_s, {})
+
+
+def test_reply_missing_samples_is_a_protocol_error() -> None:
+    from hilswarm.agents.errors import ProtocolError
+
+    pm = manager()
+    pm.assign("A2", device="b", binder="b.pin", mode=PinMode.ANALOG_IN)
+    pm.attach(ForgetfulBoard(dt=0.01, url="sim://forgetful"), watchdog_s=0)
+    with pytest.raises(ProtocolError, match=r"sim://forgetful.*A2"):
+        pm.exchange()
+
+
+def test_detach_forgets_the_board() -> None:
+    pm = manager()
+    pm.attach(SimBoard(dt=0.01), watchdog_s=0)
+    assert pm.board is not None
+    pm.detach()
+    with pytest.raises(BoardConnectionError):
+        pm.exchange()

@@ -368,3 +368,28 @@ def test_test_hooks_refuse_bad_input() -> None:
         board.set_digital_input(12, 3)
     with pytest.raises(ValueError, match="seconds"):
         board.advance_time(-1)
+
+
+def test_config_entries_must_be_pin_configs_and_at_most_twenty() -> None:
+    board = opened()
+    refused(ErrorCode.BAD_LENGTH, None, board.configure, [(4, 2, 0)], watchdog_s=0)
+    refused(ErrorCode.BAD_LENGTH, None, board.configure, [PinConfig(4, OUT)] * 21, watchdog_s=0)
+
+
+def test_tick_pins_that_are_not_numbers_are_bad_pins() -> None:
+    board = configured()
+    refused(ErrorCode.BAD_PIN, None, board.exchange, {"D4": 1}, [])
+    refused(ErrorCode.BAD_PIN, None, board.exchange, {}, [None])
+
+
+class StrayPlant(RcPlant):
+    def advance(self, outputs: Mapping[int, int], dt: float) -> Mapping[int, float]:
+        return {42: 1.0}
+
+
+def test_plant_voltage_for_a_missing_pin_is_named() -> None:
+    board = SimBoard(plant=StrayPlant(), dt=0.1)
+    board.open()
+    board.configure([], watchdog_s=0)
+    with pytest.raises(PlantError, match="42"):
+        board.exchange({}, [])

@@ -471,3 +471,31 @@ def test_calibration_naming_unknown_inputs_is_refused() -> None:
 def test_to_pwm_without_calibration_is_named() -> None:
     with pytest.raises(VehicleError, match=r"'left'.*calibration"):
         Rover().to_pwm("left", 0.1)
+
+
+def test_remaining_vehicle_errors_are_named() -> None:
+    with pytest.raises(VehicleError, match="params must be a mapping"):
+        Rover(params=[1])  # type: ignore[arg-type]
+    with pytest.raises(VehicleError, match="limits must map"):
+        Rover(limits=[(0, 1)])  # type: ignore[arg-type]
+    with pytest.raises(VehicleError, match="initial_state"):
+        Rover(initial_state=["x"])  # type: ignore[list-item]
+
+    class Twice(Rover):
+        def setup_devices(self) -> None:
+            super().setup_devices()
+            self.add_device(Battery, "battery")
+
+    with pytest.raises(VehicleError, match=r"'battery'.*twice"):
+        Twice()
+
+    class Words(Rover):
+        def read_outputs(self) -> list[str]:
+            return ["high"]
+
+    vehicle = Words(name="w")
+    vehicle.connect(SimBoard(plant=DrainingBattery(), dt=0.1))
+    with pytest.raises(VehicleError, match=r"'w'.*not numbers"):
+        vehicle.sense(0, 0.0)
+    with pytest.raises(VehicleError, match=r"'left'.*calibration"):
+        Rover().to_u("left", 10)
