@@ -201,3 +201,20 @@ def test_crash_mid_run_keeps_written_chunks(tmp_path) -> None:
     assert list(iter_messages(recovered)) == readable
     with pytest.raises(RecordingError, match="differ"):
         recover(recovered, recovered)
+
+
+def test_every_message_validates_against_its_schema(tmp_path) -> None:
+    jsonschema = pytest.importorskip("jsonschema")
+    path = tmp_path / "valid.mcap"
+    with McapJsonWriter(path) as writer:
+        writer.add_topic("/a/y", fields=("x", "y"))
+        writer.add_topic("/a/x_hat")
+        for k in range(5):
+            writer.write("/a/y", k=k, t=0.1 * k, values=[k, np.nan], log_time_ns=k)
+            writer.write("/a/x_hat", k=k, t=0.1 * k, values=[], log_time_ns=k, phase="drive")
+    schemas = read_schemas(path)
+    for topic, _, message in iter_messages(path):
+        jsonschema.Draft202012Validator.check_schema(schemas[topic])
+        jsonschema.validate(message, schemas[topic], cls=jsonschema.Draft202012Validator)
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"k": 1.5, "t": 0.0, "values": []}, schemas["/a/y"])
