@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from hilswarm.agents.control import ControlModel, StateFeedback
+from hilswarm.agents.errors import PlantError
 from hilswarm.agents.sim.plant import ContinuousPlant, integrate
 from hilswarm.agents.sim.simulated_vehicle import SimulatedVehicle
 from hilswarm.agents.sim.spring_mass_damper import SpringMassDamper
@@ -80,7 +81,7 @@ def place_gains(
 def tick_count(duration_s: float, dt: float) -> int:
     """Number of ticks covering ``duration_s`` [s] with period ``dt`` [s] (rounded)."""
     if not dt > 0 or not duration_s > 0:
-        raise ValueError(f"duration_s and dt must be > 0 [s], got {duration_s!r}, {dt!r}")
+        raise PlantError(f"duration_s and dt must be > 0 [s], got {duration_s!r}, {dt!r}")
     return round(duration_s / dt)
 
 
@@ -138,7 +139,7 @@ def sil_adaptive(
         atol=atol,
     )
     if not solution.success:
-        raise RuntimeError(f"solve_ivp failed: {solution.message}")
+        raise PlantError(f"solve_ivp failed: {solution.message}")
     z = solution.y.T
     return Trajectory("SIL-RK45", times, z, -(z[:-1] @ k_matrix.T))
 
@@ -190,5 +191,5 @@ def shil(
 def max_abs_difference(a: Trajectory, b: Trajectory) -> float:
     """Largest ``|a.z - b.z|`` over all ticks and states [m or m/s]."""
     if a.z.shape != b.z.shape:
-        raise ValueError(f"trajectories differ in shape: {a.z.shape} vs {b.z.shape}")
+        raise PlantError(f"trajectories differ in shape: {a.z.shape} vs {b.z.shape}")
     return float(np.max(np.abs(a.z - b.z)))
