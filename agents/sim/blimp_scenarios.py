@@ -33,6 +33,7 @@ __all__ = [
     "Scenario",
     "ScenarioResult",
     "reversal_count",
+    "run_board_scenario",
     "run_scenario",
     "saturation_count",
 ]
@@ -124,13 +125,18 @@ class ScenarioResult:
         }
 
     def saturations(self) -> dict[str, int]:
-        """Ticks at which each input sat at its limit."""
+        """Ticks at which each thrust sat at ±thrust_limit_n, and ticks with the servo at an
+        end stop of its travel (μ = -π or μ = 0; μ = 0 is *by design* the forward-thrust
+        angle, so ``servo_end_stop`` counts time spent thrusting forward, not a problem).
+        """
         p = DEFAULT_BLIMP_PARAMS
-        return saturation_count(
+        counts = saturation_count(
             self.inputs,
             lower=(-p.thrust_limit_n, -p.thrust_limit_n, p.thrust_angle_min_rad),
             upper=(p.thrust_limit_n, p.thrust_limit_n, p.thrust_angle_max_rad),
         )
+        counts["servo_end_stop"] = counts.pop("thrust_angle")
+        return counts
 
     def reversals(self, modes: Sequence[Mode] | None = None) -> dict[str, int]:
         """Input direction reversals (chattering), optionally only inside ``modes``."""
@@ -227,4 +233,60 @@ def run_scenario(
         if k < steps:
             x = plant.advance(t[k], x, u, dt, method="rk4", substeps=substeps)
     extras = {"hold_heading": float(model.x_hat[StateIndex.HOLD_PSI])}
+    return ScenarioResult(scenario, t, states, inputs, modes, dt, extras)
+
+
+def run_board_scenario(
+    scenario: Scenario | str,
+    *,
+    dt: float = 0.05,
+    duration_s: float | None = None,
+    controller_params: Mapping[str, Any] | None = None,
+    vehicle_params: Mapping[str, Any] | None = None,
+) -> ScenarioResult:
+    """Run a scenario through the whole pin-level chain (simulated hardware in the loop).
+
+    :class:`~hilswarm.agents.vehicles.blimpduino.Blimpduino` on a ``sim://fio``
+    :class:`~hilswarm.agents.link.sim_board.SimBoard` whose plant is the vehicle's
+    :class:`~hilswarm.agents.sim.blimp.BlimpPinPlant`: thrusts become PWM duties through the
+    calibration, the servo angle a pulse width, and back. Tick order as in an agent:
+    sense y_k, controller, apply u_{k+1}, exchange (the plant advances dt). The pose comes
+    straight from the plant (noise-free motion capture).
+    """
+    from hilswarm.agents.link.sim_board import SimBoard  # noqa: PLC0415 - avoid a cycle
+    from hilswarm.agents.vehicles.blimpduino import Blimpduino  # noqa: PLC0415
+
+    if isinstance(scenario, str):
+        if scenario not in SCENARIOS:
+            raise PlantError(
+                f"unknown blimp scenario {scenario!r}; expected one of {sorted(SCENARIOS)}"
+            )
+        scenario = SCENARIOS[scenario]
+    vehicle = Blimpduino(name="blimp", dt=dt, params=vehicle_params)
+    plant = vehicle.simulated_hardware(initial_state=scenario.initial_pose, dt=dt)
+    board = SimBoard("fio", plant=plant, dt=dt)
+    vehicle.pose_source = plant
+    vehicle.connect(board, watchdog_s=0.5)
+    params = {**scenario.params, **(controller_params or {})}
+    model = ControlModel(BlimpFlightController(), dt=dt, n_inputs=3, n_outputs=4, params=params)
+    span_s = duration_s if duration_s is not None else scenario.duration_s
+    steps = round(span_s / dt)
+    t = np.arange(steps + 1) * dt
+    states = np.empty((steps + 1, 12))
+    inputs = np.empty((steps + 1, 3))
+    modes = np.empty(steps + 1, dtype=int)
+    for k in range(steps + 1):
+        states[k] = plant.state
+        y = vehicle.sense(k, float(t[k]))
+        vehicle.apply(model.step(vehicle.u, y, t=float(t[k])))
+        inputs[k] = vehicle.u
+        modes[k] = int(model.x_hat[StateIndex.MODE])
+        if k < steps:
+            vehicle.exchange()
+    board.close()
+    extras = {
+        "hold_heading": float(model.x_hat[StateIndex.HOLD_PSI]),
+        "battery_v": float(plant.battery.volts),
+        "safe_mode": vehicle.safe_mode,
+    }
     return ScenarioResult(scenario, t, states, inputs, modes, dt, extras)
