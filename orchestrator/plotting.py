@@ -103,7 +103,10 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
                 (int(message["k"]), _float(message.get("t")), list(message.get("values") or []))
             )
     schemas = read_schemas(path)
-    for topic, samples in rows.items():
+    graph_order = ((data.experiment or {}).get("graph") or {}).get("agents") or []
+    rank = {name: i for i, name in enumerate(graph_order)}
+    ordered = sorted(rows.items(), key=lambda item: rank.get(item[0][1:].split("/")[0], len(rank)))
+    for topic, samples in ordered:
         agent, kind = topic[1:].split("/")
         series = _series(samples, _entry_names(schemas.get(topic, {})))
         (data.outputs if kind == "y" else data.inputs)[agent] = series
@@ -199,8 +202,8 @@ def _paths_figure(outputs: dict[str, Series], xy: Sequence[int], title: str) -> 
             axis.plot(x[first], y[first], "o", color=line.get_color())
             axis.plot(x[last], y[last], "s", color=line.get_color())
     any_series = next(iter(usable.values()))
-    axis.set_xlabel(f"{any_series.names[ix]} (y[{ix}])")
-    axis.set_ylabel(f"{any_series.names[iy]} (y[{iy}])")
+    axis.set_xlabel(_axis_label(any_series.names[ix], ix))
+    axis.set_ylabel(_axis_label(any_series.names[iy], iy))
     axis.set_aspect("equal", adjustable="datalim")
     axis.grid(True, alpha=0.3)
     if len(usable) <= MAX_LEGEND_ENTRIES:
@@ -298,6 +301,10 @@ def _common_names(signals: dict[str, Series], width: int) -> tuple[str, ...]:
         labels = {s.names[entry] for s in signals.values() if entry < len(s.names)}
         names.append(labels.pop() if len(labels) == 1 else f"values[{entry}]")
     return tuple(names)
+
+
+def _axis_label(name: str, index: int) -> str:
+    return f"y[{index}]" if name == f"values[{index}]" else f"{name} (y[{index}])"
 
 
 def _float(value: Any) -> float:
