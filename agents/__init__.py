@@ -1,1 +1,1 @@
-"""hilswarm agents: everything one agent process is made of (link, pins, devices, vehicle, control)."""
+"""hilswarm agents: what one agent process is made of (link, pins, devices, vehicle, control)."""

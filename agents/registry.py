@@ -54,7 +54,9 @@ def _resolve(kind: str, table: dict[str, str], name: str) -> Any:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        raise RegistryError(f"{kind} {name!r}: cannot import module {module_name!r}: {exc}") from exc
+        raise RegistryError(
+            f"{kind} {name!r}: cannot import module {module_name!r}: {exc}"
+        ) from exc
     try:
         return getattr(module, attr)
     except AttributeError:

@@ -1,1 +1,1 @@
-"""hilswarm orchestrator: experiment files, graph checks, launcher, instance manager, recorder, CLI."""
+"""hilswarm orchestrator: experiment files, graph checks, launcher, ticks, recorder, CLI."""
