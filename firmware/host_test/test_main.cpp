@@ -620,12 +620,12 @@ void test_engine_watchdog() {
   link.request(hello(1));
   link.request(config(2, 100, kBlimp));
   link.request(tick(3, 1u << 2, 0, cat({pwm_write(5, 77), servo_write(9, 2000)})));
-  link.now_ms += 99;
+  link.now_ms += 100;
   link.engine.poll(link.now_ms);
-  check_eq(fake::board.pwm[5], 77, "no trip at 99 ms");
+  check_eq(fake::board.pwm[5], 77, "no trip at exactly 100 ms");
   link.now_ms += 1;
   link.engine.poll(link.now_ms);
-  check_eq(fake::board.pwm[5], 0, "trip at 100 ms: PWM safe");
+  check_eq(fake::board.pwm[5], 0, "trip once the silence exceeds 100 ms: PWM safe");
   check_eq(fake::board.servo[9], 1500, "servo safe");
   check_eq(fake::board.digital_out[2], 0, "digital safe");
   const long writes = fake::board.writes;

@@ -43,7 +43,7 @@ void Engine::drive_safe() {
 
 void Engine::poll(uint32_t now_ms) {
   if (watchdog_ms_ == 0 || link_tripped_ || (flags_ & wire::kStatusNotConfigured)) return;
-  if (now_ms - last_rx_ms_ >= watchdog_ms_) {
+  if (now_ms - last_rx_ms_ > watchdog_ms_) {  // silence *exceeds* the timeout (as SimBoard)
     drive_safe();
     flags_ |= wire::kStatusWatchdogTripped;
     link_tripped_ = true;

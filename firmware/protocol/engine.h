@@ -35,7 +35,8 @@ class Engine {
   // A frame was dropped silently (CRC, framing, too short): flag RX_ERRORS.
   void rx_error() { flags_ |= wire::kStatusRxErrors; }
 
-  // Periodic work: trips the link watchdog after `watchdog_ms` without a valid frame.
+  // Periodic work: trips the link watchdog once the silence since the last valid frame exceeds
+  // `watchdog_ms` (1 ms resolution).
   void poll(uint32_t now_ms);
 
   // Observers (tests).
