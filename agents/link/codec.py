@@ -545,7 +545,12 @@ def check_tick(msg: TickMsg, modes: Sequence[int]) -> None:
         if pin >= len(modes) or not PinMode(modes[pin]).is_input:
             raise WireFormatError(f"TICK samples pin {pin}, which is not an input",
                                   code=ErrorCode.BAD_PIN, detail=pin)
+    written: set[int] = set()
     for w in msg.writes:
+        if w.pin in written:
+            raise WireFormatError(f"TICK writes pin {w.pin} twice (one write per pin)",
+                                  code=ErrorCode.BAD_PIN, detail=w.pin)
+        written.add(w.pin)
         if w.mode == PinMode.SERVO and not SERVO_MIN_US <= w.value <= SERVO_MAX_US:
             raise WireFormatError(
                 f"TICK servo pin {w.pin}: {w.value} µs outside {SERVO_MIN_US}-{SERVO_MAX_US}",

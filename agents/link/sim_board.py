@@ -270,6 +270,7 @@ class SimBoard(Board):
         """
         self._require_open()
         self._next_seq()
+        self._frame_received()  # like the firmware: any checked frame feeds the watchdog
         watchdog_ms = self._check_watchdog(watchdog_s)
         entries = list(pins)
         if len(entries) > PIN_COUNT:
@@ -361,6 +362,7 @@ class SimBoard(Board):
         """
         self._require_open()
         seq = self._next_seq()
+        self._frame_received()  # like the firmware: a refused request still feeds the watchdog
         if self._config is None:
             raise _refuse(ErrorCode.NOT_CONFIGURED, "TICK before any CONFIG")
         config = self._config

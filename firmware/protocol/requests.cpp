@@ -135,10 +135,13 @@ RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* confi
     }
   }
   uint8_t i = kTickHeader;
+  uint32_t written = 0;
   while (i < len) {
     const uint8_t pin = body[i];
     const uint8_t mode = pin < wire::kPinCount ? config[pin].mode : wire::kModeUnused;
     if (mode != wire::kModePwm && mode != wire::kModeServo) return fail(wire::kErrBadPin, pin);
+    if (written & (1UL << pin)) return fail(wire::kErrBadPin, pin);  // one write per pin
+    written |= 1UL << pin;
     const uint8_t width = mode == wire::kModePwm ? 1 : 2;
     if (static_cast<uint16_t>(i) + 1 + width > len) return fail(wire::kErrBadLength, wire::kTick);
     if (mode == wire::kModeServo) {

@@ -209,6 +209,7 @@ def test_bad_requests_get_error_frames(board: SimavrBoard) -> None:
         ((1 << 3).to_bytes(3, "little") + bytes(3), ErrorCode.BAD_PIN, 3),  # dout on an input
         (bytes(3) + (1 << 2).to_bytes(3, "little"), ErrorCode.BAD_PIN, 2),  # read an output
         (bytes(6) + b"\x02\x01", ErrorCode.BAD_PIN, 2),  # PWM write to a digital output
+        (bytes(6) + b"\x05\x10\x05\x20", ErrorCode.BAD_PIN, 5),  # PWM pin written twice
         (bytes(6) + b"\x09\xdc", ErrorCode.BAD_LENGTH, 0x03),  # servo value truncated
         (bytes(5), ErrorCode.BAD_LENGTH, 0x03),
     ]
