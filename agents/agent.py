@@ -87,7 +87,8 @@ class AgentConfig:
         dt: control period [s].
         watchdog_s: board watchdog timeout [s] (``None``: :data:`DEFAULT_WATCHDOG_S`).
         seed: seed for simulated sensors (mocap noise), or ``None``.
-        mocap_noise_std: standard deviation of simulated mocap noise [m, rad] (0: exact).
+        mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
+        mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
     """
 
     experiment: str
@@ -105,7 +106,8 @@ class AgentConfig:
     calibration: str | None = None
     watchdog_s: float | None = None
     seed: int | None = None
-    mocap_noise_std: float = 0.0
+    mocap_noise_std_m: float = 0.0
+    mocap_noise_std_rad: float = 0.0
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
@@ -203,7 +205,10 @@ def _open_board(config: AgentConfig, vehicle: Any) -> Any:
             from hilswarm.agents.sim.mocap import SimulatedMocap  # noqa: PLC0415 - sim only
 
             vehicle.pose_source = SimulatedMocap(
-                plant, noise_std=config.mocap_noise_std, seed=config.seed
+                plant,
+                noise_std_m=config.mocap_noise_std_m,
+                noise_std_rad=config.mocap_noise_std_rad,
+                seed=(config.seed or 0) + config.index,  # distinct, reproducible per agent
             )
     board = board_for_url(config.link, **options)
     vehicle.connect(board, watchdog_s=config.watchdog_s or DEFAULT_WATCHDOG_S)
@@ -306,18 +311,20 @@ class Agent:
                 raise StopRequestedError(f"agent {self.config.name!r}: {item[1]} during start-up")
             self._queue_replay.append(item)
 
-    def _matched(self, publisher: zenoh.Publisher) -> threading.Event:
-        """An event set once ``publisher`` has a matching subscriber."""
+    def _watch_matching(self, publisher: zenoh.Publisher) -> threading.Event:
+        """An event that is set exactly while ``publisher`` has matching subscribers."""
         event = threading.Event()
 
         def on_status(status: zenoh.MatchingStatus) -> None:
             if status.matching:
                 event.set()
+            else:
+                event.clear()
 
         self._entities.append(
             publisher.declare_matching_listener(zenoh.handlers.Callback(on_status, indirect=False))
         )
-        if publisher.matching_status:
+        if bus.has_subscribers(publisher):
             event.set()
         return event
 
@@ -328,7 +335,8 @@ class Agent:
             self.keys.status(self.config.name), **bus.DATA_QOS
         )
         self._wait_for(
-            self._matched(self._status_pub), "the orchestrator to subscribe to the status key"
+            self._watch_matching(self._status_pub),
+            "the orchestrator to subscribe to the status key",
         )
         return session
 
@@ -377,7 +385,13 @@ class Agent:
             )
         )
         self._entities.extend(entities)
-        self._wait_for(self._matched(self._y_pub), "the manager to subscribe to y")
+        # u and x_hat travel to the manager inside the y report; their own keys are published
+        # only while someone else (a tool, a dashboard) subscribes to them.
+        self._extra_listeners = (
+            self._watch_matching(self._u_pub),
+            self._watch_matching(self._x_pub),
+        )
+        self._wait_for(self._watch_matching(self._y_pub), "the manager to subscribe to y")
         self._wait_for(self._manager_seen, "the instance manager's liveliness token")
         # Declared last: once the manager sees the token, every declaration above is known.
         self._entities.append(session.liveliness().declare_token(keys.alive(name)))
@@ -555,13 +569,13 @@ class Agent:
         self.k = k
         self._y = y
         timing = bus.AgentTiming(t1 - t0, t2 - t1, t3 - t2, skipped)
-        self._y_pub.put(bus.encode_vector(k, t, y), attachment=bus.encode_timing(timing))
-        if u_new is not None:
-            t_applied = t - self.config.dt
-            self._u_pub.put(bus.encode_vector(k, t_applied, u_new))
-            x_hat = hw.model.x_hat
-            if x_hat.size:
-                self._x_pub.put(bus.encode_vector(k, t_applied, x_hat))
+        x_hat = hw.model.x_hat if u_new is not None else None
+        report = bus.encode_report(timing, u_new, x_hat)
+        self._y_pub.put(bus.encode_vector(k, t, y), attachment=report)
+        if u_new is not None and self._extra_listeners[0].is_set():
+            self._u_pub.put(bus.encode_vector(k, t - self.config.dt, u_new))
+        if x_hat is not None and x_hat.size and self._extra_listeners[1].is_set():
+            self._x_pub.put(bus.encode_vector(k, t - self.config.dt, x_hat))
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
             reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
             lifecycle.enter_safe(detail=str(reason))

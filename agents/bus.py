@@ -7,9 +7,11 @@ Key space, one experiment per prefix ``hilswarm/<exp>/``:
 
 * ``tick`` — the instance manager's tick messages (:func:`encode_tick`).
 * ``control`` — swarm-wide commands (:class:`ControlCommand`: stop, estop, pause, resume).
-* ``agent/<name>/y`` — the agent's output y_k (:func:`encode_vector`), with its tick timings
-  as attachment (:class:`AgentTiming`). Neighbours subscribe to this *explicit* key.
-* ``agent/<name>/u``, ``agent/<name>/x_hat`` — applied input u_k and controller state.
+* ``agent/<name>/y`` — the agent's output y_k (:func:`encode_vector`), with its
+  :class:`TickReport` (timings, u_k, x_hat_k) as attachment, so the manager and its recorder
+  get everything of a tick in one message. Neighbours subscribe to this *explicit* key.
+* ``agent/<name>/u``, ``agent/<name>/x_hat`` — applied input u_k and controller state, for
+  other listeners (tools, dashboards); an agent publishes there only while someone subscribes.
 * ``agent/<name>/status`` — lifecycle transitions and acknowledgements (JSON, rare).
 * ``agent/<name>/set`` — a queryable: parameter changes, answered with an acknowledgement.
 * ``agent/<name>/telemetry/<channel>`` — telemetry channels (vector messages).
@@ -55,6 +57,7 @@ TICK_PATH_QOS: dict[str, Any] = {
     "congestion_control": zenoh.CongestionControl.BLOCK,
     "priority": zenoh.Priority.REAL_TIME,
     "reliability": zenoh.Reliability.RELIABLE,
+    "express": True,
 }
 #: QoS of recorded but non-critical data (u, x_hat, telemetry, status): reliable, blocking.
 DATA_QOS: dict[str, Any] = {
@@ -200,7 +203,7 @@ class BusKeys:
 
 _VECTOR_HEADER = struct.Struct("<qd")
 _TICK_HEADER = struct.Struct("<qdH")
-_TIMING = struct.Struct("<dddI")
+_REPORT_HEADER = struct.Struct("<dddIHH")
 
 
 def encode_vector(k: int, t: float, values: np.ndarray | Sequence[float]) -> bytes:
@@ -268,7 +271,7 @@ def decode_tick(payload: bytes | bytearray | memoryview) -> TickMessage:
 
 @dataclass(frozen=True)
 class AgentTiming:
-    """Where one agent spent one tick (sent as attachment of its y message).
+    """Where one agent spent one tick.
 
     Attributes:
         compute_s: controller step [s, wall clock].
@@ -283,18 +286,55 @@ class AgentTiming:
     skipped: int = 0
 
 
-def encode_timing(timing: AgentTiming) -> bytes:
-    """Encode an :class:`AgentTiming` (three float64 and a uint32)."""
-    return _TIMING.pack(timing.compute_s, timing.actuate_s, timing.sense_s, timing.skipped)
+@dataclass(frozen=True)
+class TickReport:
+    """What an agent reports to the manager with y_k (the attachment of its y message).
+
+    Attributes:
+        timing: where the tick's time went.
+        u: the input u_k applied over [t_{k-1}, t_k) (empty at tick 0 and when not actuating).
+        x_hat: the controller state after computing u_k (empty when there is none).
+    """
+
+    timing: AgentTiming
+    u: np.ndarray
+    x_hat: np.ndarray
 
 
-def decode_timing(payload: bytes | bytearray | memoryview | None) -> AgentTiming:
-    """Decode :func:`encode_timing`'s bytes (``None`` or empty -> zero timing)."""
+def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray | None) -> bytes:
+    """Encode a :class:`TickReport`: timing (3 float64, uint32), sizes (2 uint16), u, x_hat."""
+    u_bytes = b"" if u is None else np.asarray(u, dtype="<f8").tobytes()
+    x_bytes = b"" if x_hat is None else np.asarray(x_hat, dtype="<f8").tobytes()
+    return (
+        _REPORT_HEADER.pack(
+            timing.compute_s,
+            timing.actuate_s,
+            timing.sense_s,
+            timing.skipped,
+            len(u_bytes) // 8,
+            len(x_bytes) // 8,
+        )
+        + u_bytes
+        + x_bytes
+    )
+
+
+def decode_report(payload: bytes | bytearray | memoryview | None) -> TickReport:
+    """Decode :func:`encode_report`'s bytes (``None`` or empty: zero timing, no vectors)."""
     if not payload:
-        return AgentTiming()
-    if len(payload) != _TIMING.size:
-        raise BusMessageError(f"timing attachment of {len(payload)} bytes, expected {_TIMING.size}")
-    return AgentTiming(*_TIMING.unpack(payload))
+        return TickReport(AgentTiming(), np.zeros(0), np.zeros(0))
+    size = len(payload)
+    if size < _REPORT_HEADER.size:
+        raise BusMessageError(
+            f"tick report of {size} bytes, expected at least {_REPORT_HEADER.size}"
+        )
+    compute_s, actuate_s, sense_s, skipped, n_u, n_x = _REPORT_HEADER.unpack_from(payload)
+    if size != _REPORT_HEADER.size + 8 * (n_u + n_x):
+        raise BusMessageError(f"tick report of {size} bytes does not hold {n_u} + {n_x} values")
+    offset = _REPORT_HEADER.size
+    u = np.frombuffer(payload, dtype="<f8", count=n_u, offset=offset).copy()
+    x_hat = np.frombuffer(payload, dtype="<f8", count=n_x, offset=offset + 8 * n_u).copy()
+    return TickReport(AgentTiming(compute_s, actuate_s, sense_s, skipped), u, x_hat)
 
 
 class ControlCommand(enum.Enum):
@@ -382,6 +422,16 @@ def client_config(endpoints: Iterable[str]) -> zenoh.Config:
     config.insert_json5("connect/endpoints", json.dumps(connect))
     config.insert_json5("listen/endpoints", "[]")
     return config
+
+
+def has_subscribers(publisher: zenoh.Publisher) -> bool:
+    """True when ``publisher`` currently has matching subscribers.
+
+    (``Publisher.matching_status`` is a ``MatchingStatus`` object in zenoh-python 1.x, not a
+    bool: it is always truthy, so test its ``matching`` attribute.)
+    """
+    status = publisher.matching_status
+    return bool(getattr(status, "matching", status))
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:

@@ -30,7 +30,11 @@ class AgentProcessError(HilswarmError, RuntimeError):
 
 
 def agent_config_for(
-    experiment: Experiment, name: str, *, mocap_noise_std: float = 0.0
+    experiment: Experiment,
+    name: str,
+    *,
+    mocap_noise_std_m: float = 0.0,
+    mocap_noise_std_rad: float = 0.0,
 ) -> AgentConfig:
     """The :class:`AgentConfig` of agent ``name`` of ``experiment`` (links as overridden)."""
     spec = experiment.agent(name)
@@ -50,7 +54,8 @@ def agent_config_for(
         calibration=str(spec.calibration) if spec.calibration else None,
         watchdog_s=experiment.watchdog_s,
         seed=experiment.seed,
-        mocap_noise_std=mocap_noise_std,
+        mocap_noise_std_m=mocap_noise_std_m,
+        mocap_noise_std_rad=mocap_noise_std_rad,
     )
 
 

@@ -126,9 +126,10 @@ class RunSummary:
 class _RecordPump:
     """Writes to the recorder on its own thread, so recording never delays a tick."""
 
-    def __init__(self, recorder: Recorder | None, keys: bus.BusKeys) -> None:
+    def __init__(self, recorder: Recorder | None, keys: bus.BusKeys, dt: float) -> None:
         self.recorder = recorder
         self.keys = keys
+        self.dt = dt
         self.queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self.agent_states: dict[str, str] = {}
         self.stopped_agents: set[str] = set()
@@ -160,6 +161,27 @@ class _RecordPump:
             if recorder is not None:
                 k, t, timings = payload
                 recorder.write_ticks(k=k, t=t, log_time_ns=log_time_ns, timings=timings)
+            return
+        if key == "#y":
+            if recorder is not None:
+                name, y, report = payload
+                k, t, values = bus.decode_vector(y)
+                recorder.write_vector(
+                    f"/{name}/y", k=k, t=t, values=values, log_time_ns=log_time_ns
+                )
+                if report.u.size:
+                    t_u = t - self.dt
+                    recorder.write_vector(
+                        f"/{name}/u", k=k, t=t_u, values=report.u, log_time_ns=log_time_ns
+                    )
+                    if report.x_hat.size:
+                        recorder.write_vector(
+                            f"/{name}/x_hat",
+                            k=k,
+                            t=t_u,
+                            values=report.x_hat,
+                            log_time_ns=log_time_ns,
+                        )
             return
         if key == "#status":
             name, state, k, t, detail = payload
@@ -193,8 +215,10 @@ class _RecordPump:
         k, t, values = bus.decode_vector(payload)
         recorder.write_vector(f"/{name}/{leaf}", k=k, t=t, values=values, log_time_ns=log_time_ns)
 
-    def put_vector(self, key: str, payload: bytes, log_time_ns: int) -> None:
-        self.queue.put((key, payload, log_time_ns))
+    def put_outputs(self, name: str, y: bytes, report: bus.TickReport, log_time_ns: int) -> None:
+        """Record an agent's y_k and the u_k, x_hat_k of its report."""
+        if self.recorder is not None:
+            self.queue.put(("#y", (name, y, report), log_time_ns))
 
     def put_ticks(self, k: int, t: float, timings: dict[str, Any], log_time_ns: int) -> None:
         self.queue.put(("#ticks", (k, t, timings), log_time_ns))
@@ -305,7 +329,7 @@ class InstanceManager:
         self._display = display
         self._record_ticks = record_ticks
         self._queue: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
-        self._pump = _RecordPump(recorder, self.keys)
+        self._pump = _RecordPump(recorder, self.keys, experiment.dt)
         self._session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self.alive: set[str] = set()
@@ -318,7 +342,6 @@ class InstanceManager:
         self.summary._dt = self.dt
         self.summary.late = dict.fromkeys(self.names, 0)
         self.summary.planned_ticks = experiment.n_ticks
-        self._y_keys = [self.keys.y(name) for name in self.names]
         self._clock_origin = clock()
 
     # -- bus ---------------------------------------------------------------------------------
@@ -355,7 +378,8 @@ class InstanceManager:
                 )
             )
         pump, wall_ns = self._pump, self._wall_ns
-        for leaf in ("u", "x_hat", "status", "telemetry/**"):
+        # u and x_hat arrive inside the agents' y reports; status and telemetry on their keys.
+        for leaf in ("status", "telemetry/**"):
             entities.append(
                 session.declare_subscriber(
                     f"{keys.prefix}/agent/*/{leaf}",
@@ -525,10 +549,11 @@ class InstanceManager:
         kind = item[0]
         if kind == _Y:
             _, i, payload, attachment, received = item
-            self._pump.put_vector(self._y_keys[i], payload, self._wall_ns())
+            report = bus.decode_report(attachment)
+            self._pump.put_outputs(self.names[i], payload, report, self._wall_ns())
             k_y = _K.unpack_from(payload)[0]
             if k_y == tick.k and not tick.arrived[i]:
-                tick.answer(i, received, bus.decode_timing(attachment), counted=i not in self.lost)
+                tick.answer(i, received, report.timing, counted=i not in self.lost)
             elif k_y < tick.k:
                 logger.debug("late answer of %s for tick %d", self.names[i], k_y)
         elif kind == _GONE:
@@ -651,7 +676,8 @@ class InstanceManager:
             if item[0] == _GONE:
                 self.alive.discard(item[1])
             elif item[0] == _Y:
-                self._pump.put_vector(self._y_keys[item[1]], item[2], self._wall_ns())
+                report = bus.decode_report(item[3])
+                self._pump.put_outputs(self.names[item[1]], item[2], report, self._wall_ns())
 
     def _show(self, k: int, start: float, now: float) -> None:
         if self._display is None:

@@ -1,0 +1,49 @@
+"""``hilswarm agent``: run one agent of an experiment in this process and join a running bus.
+
+Used for multi-machine runs: the orchestrator runs with ``--remote NAME`` (it does not start
+that agent) and this command, on the machine the robot is plugged into, joins through the local
+Zenoh router::
+
+    hilswarm agent --connect tcp/127.0.0.1:7447 --experiment graphs/lead_follow.toml \\
+        --name leader --link leader=/dev/ttyUSB0
+
+Ctrl-C brings the agent to safe mode and stops it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from hilswarm.agents.agent import run_agent
+from hilswarm.orchestrator.commands.overrides import overrides_from_args
+from hilswarm.orchestrator.experiment import load_experiment
+from hilswarm.orchestrator.launcher import agent_config_for
+
+HELP = "start one agent process that joins a running experiment"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Arguments of ``hilswarm agent``."""
+    parser.add_argument(
+        "--connect", action="append", required=True, metavar="ENDPOINT", help="Zenoh endpoint"
+    )
+    parser.add_argument("--experiment", type=Path, required=True, help="experiment file")
+    parser.add_argument("--name", required=True, help="which agent of the experiment to run")
+    parser.add_argument(
+        "--link", action="append", default=[], metavar="NAME=URL", help="override a link"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the agent until the experiment stops it."""
+    experiment = load_experiment(args.experiment, overrides=overrides_from_args(args))
+    if args.name not in experiment.agent_names:
+        known = ", ".join(experiment.agent_names)
+        print(
+            f"hilswarm agent: no agent {args.name!r} in {args.experiment}; agents: {known}",
+            file=sys.stderr,
+        )
+        return 2
+    return run_agent(agent_config_for(experiment, args.name), args.connect)
