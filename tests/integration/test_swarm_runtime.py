@@ -1,0 +1,331 @@
+"""The swarm runtime end to end: real `hilswarm run` processes, agents, Zenoh on loopback."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hilswarm.agents import bus
+from mcap.reader import make_reader
+from swarm_harness import (
+    TOY_NEIGHBOURS,
+    RunProcess,
+    Spy,
+    connect_spy,
+    free_port,
+    pid_alive,
+    read_recording,
+    wait_for,
+    write_toy_experiment,
+)
+
+pytestmark = pytest.mark.integration
+
+AGENTS = ("a", "b", "c", "d")
+CLI = (sys.executable, "-m", "hilswarm.orchestrator.cli")
+
+
+@pytest.fixture
+def runs() -> Iterator[list[RunProcess]]:
+    """Runs started by a test; every one is killed (with its agents) afterwards."""
+    started: list[RunProcess] = []
+    yield started
+    for run in started:
+        run.cleanup()
+
+
+@pytest.fixture
+def spies() -> Iterator[list[Spy]]:
+    opened: list[Spy] = []
+    yield opened
+    for spy in opened:
+        spy.close()
+
+
+def start(runs: list[RunProcess], tmp_path: Path, experiment: Path, *args: str) -> RunProcess:
+    run = RunProcess(tmp_path, experiment, "--no-check", *args, port=free_port())
+    runs.append(run)
+    return run
+
+
+def statuses(recording: dict, agent: str) -> list[dict]:
+    return recording.get(f"/{agent}/status", [])
+
+
+def states(recording: dict, agent: str) -> list[str]:
+    return [m["state"] for m in statuses(recording, agent)]
+
+
+def test_lockstep_run_records_every_tick_and_delivers_only_to_neighbours(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(tmp_path / "toy.toml", duration_s=4.0)
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    assert run.wait(120) == 0, run.output()
+
+    recording = read_recording(run.out)
+    n_ticks = 200
+    for name in AGENTS:
+        ys = recording[f"/{name}/y"]
+        assert [m["k"] for m in ys] == list(range(n_ticks))
+        assert [m["k"] for m in recording[f"/{name}/u"]] == list(range(1, n_ticks))
+        assert states(recording, name) == [
+            "connected",
+            "configured",
+            "armed",
+            "running",
+            "safe",
+            "stopped",
+        ]
+        # The agent reports which outputs it actually received: exactly its neighbours'.
+        final = statuses(recording, name)[-1]["detail"]
+        received = set(final.removeprefix("received from: ").split(", ")) - {"-"}
+        assert received == TOY_NEIGHBOURS[name], (name, final)
+    assert [m["k"] for m in recording["/orchestrator/ticks"]] == list(range(n_ticks))
+    tick = recording["/orchestrator/ticks"][10]
+    assert set(tick["agents"]) == set(AGENTS)
+    assert {"answer_s", "sense_s", "compute_s", "actuate_s"} <= set(tick["agents"]["a"])
+
+    # The spy saw every agent's y on the bus: delivery is restricted by subscriptions, not
+    # by hiding data; nobody subscribes to d's output, and d's y is still recorded.
+    for name in AGENTS:
+        assert spy.count(f"hilswarm/toy/agent/{name}/y") == n_ticks
+    assert spy.count("hilswarm/toy/tick") == n_ticks
+
+    # Lockstep is deterministic: replay the toy closed loop exactly.
+    x = np.array([0.0, 1.0, 5.0, 10.0])
+    hears = [1, 2, 0, 0]
+    dt, gain = 1 / 50, 2.0
+    expected = [x.copy()]
+    for _ in range(1, n_ticks):
+        u = gain * (x[hears] - x)
+        x = x + dt * u
+        expected.append(x.copy())
+    got = np.array([[m["values"][0] for m in recording[f"/{n}/y"]] for n in AGENTS]).T
+    np.testing.assert_allclose(got, np.array(expected), rtol=0, atol=1e-12)
+
+
+def test_kill_9_with_policy_stop_stops_everyone_safely(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(
+        tmp_path / "toy.toml", mode="realtime", duration_s=60.0, on_agent_loss="stop"
+    )
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    pids = run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 20, 60, "tick 20")
+    victim = _pid_of(pids, "b")
+    os.kill(victim, signal.SIGKILL)
+    assert run.wait(20) == 1, run.output()
+    recording = read_recording(run.out)
+    lost = [m for m in statuses(recording, "b") if m["state"] == "lost"]
+    assert lost, states(recording, "b")
+    for name in ("a", "c", "d"):
+        assert states(recording, name)[-2:] == ["safe", "stopped"], states(recording, name)
+    assert "lost agents: b" in run.output()
+    for pid in pids:
+        wait_for(lambda pid=pid: not pid_alive(pid), 15, f"agent {pid} to exit")
+
+
+def test_kill_9_with_policy_continue_marks_agent_missing(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(
+        tmp_path / "toy.toml", mode="realtime", duration_s=4.0, on_agent_loss="continue"
+    )
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    pids = run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 30, 60, "tick 30")
+    os.kill(_pid_of(pids, "b"), signal.SIGKILL)
+    assert run.wait(30) == 0, run.output()
+    recording = read_recording(run.out)
+    assert [m["state"] for m in statuses(recording, "b")][-1] == "lost"
+    # The run went on to the end without b.
+    assert recording["/a/y"][-1]["k"] == 199
+    assert recording["/c/y"][-1]["k"] == 199
+    # a hears b: after the loss a's controller saw None ("no data") on every tick.
+    missing_ticks = recording["/a/x_hat"][-1]["values"][0]
+    k_lost = next(m["k"] for m in statuses(recording, "b") if m["state"] == "lost")
+    assert missing_ticks >= 199 - k_lost - 1
+    # c does not hear b and never missed anything.
+    assert recording["/c/x_hat"][-1]["values"][0] == 0.0
+    ticks = recording["/orchestrator/ticks"]
+    assert ticks[-1]["missing"] == ["b"]
+
+
+def test_hung_agent_is_detected_and_stops_the_run(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(
+        tmp_path / "toy.toml", mode="realtime", duration_s=60.0, on_agent_loss="stop"
+    )
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    pids = run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 20, 60, "tick 20")
+    victim = _pid_of(pids, "c")
+    os.kill(victim, signal.SIGSTOP)
+    try:
+        # The 1 s lease drops the hung client; then every other agent goes safe and stops.
+        assert run.wait(20) == 1, run.output()
+    finally:
+        with contextlib.suppress(ProcessLookupError):  # the launcher may have killed it
+            os.kill(victim, signal.SIGCONT)
+    recording = read_recording(run.out)
+    assert "lost" in states(recording, "c")
+    lost_tick = next(m["k"] for m in statuses(recording, "c") if m["state"] == "lost")
+    # Bounded detection: within 3 s (150 ticks at 50 Hz) of the last answer of c.
+    last_answer = recording["/c/y"][-1]["k"]
+    assert lost_tick - last_answer <= 150
+    ticks = recording["/orchestrator/ticks"]
+    late_for_c = [m["k"] for m in ticks if "c" in m["late"]]
+    assert late_for_c, "the late answers of the hung agent must be counted"
+    for name in ("a", "b", "d"):
+        assert states(recording, name)[-2:] == ["safe", "stopped"]
+
+
+def test_ctrl_c_brings_agents_to_safe_and_completes_the_recording(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(tmp_path / "toy.toml", mode="realtime", duration_s=60.0)
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    pids = run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 20, 60, "tick 20")
+    run.process.send_signal(signal.SIGINT)
+    assert run.wait(20) == 130, run.output()
+    with run.out.open("rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None, "the MCAP file must be closed properly (summary section)"
+    recording = read_recording(run.out)
+    for name in AGENTS:
+        assert states(recording, name)[-2:] == ["safe", "stopped"], states(recording, name)
+        assert "interrupted" in statuses(recording, name)[-2]["detail"]
+    for pid in pids:
+        wait_for(lambda pid=pid: not pid_alive(pid), 15, f"agent {pid} to exit")
+
+
+def test_orchestrator_killed_agents_exit_and_recording_is_recoverable(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(tmp_path / "toy.toml", mode="realtime", duration_s=60.0)
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    pids = run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 100, 60, "tick 100")
+    os.killpg(run.process.pid, signal.SIGKILL)
+    run.wait(10)
+    # Agents notice the manager's liveliness token vanish and stop by themselves.
+    for pid in pids:
+        wait_for(lambda pid=pid: not pid_alive(pid), 15, f"orphaned agent {pid} to exit")
+    recovered = tmp_path / "recovered.mcap"
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "hilswarm.orchestrator.cli",
+            "recover",
+            str(run.out),
+            "-o",
+            str(recovered),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    recording = read_recording(recovered)
+    assert len(recording["/a/y"]) > 10
+    with recovered.open("rb") as f:
+        assert make_reader(f).get_summary() is not None
+
+
+def test_estop_reaches_every_agent_within_one_tick(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(tmp_path / "toy.toml", mode="realtime", duration_s=60.0)
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 25, 60, "tick 25")
+    spy.control(bus.ControlCommand.ESTOP, "test e-stop")
+    assert run.wait(20) == 0, run.output()
+    recording = read_recording(run.out)
+    estop = [m for m in recording["/orchestrator/status"] if m["state"] == "estop"]
+    assert len(estop) == 1
+    k_estop = estop[0]["k"]
+    for name in AGENTS:
+        safe = next(m for m in statuses(recording, name) if m["state"] == "safe")
+        assert "e-stop" in safe["detail"]
+        assert safe["k"] <= k_estop + 1, (name, safe["k"], k_estop)
+        # Actuators off: the integrator never moves again after the safe tick.
+        after = [m["values"][0] for m in recording[f"/{name}/y"] if m["k"] > safe["k"]]
+        assert all(v == after[0] for v in after), name
+
+
+def test_set_changes_parameters_between_ticks_and_is_acknowledged(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(tmp_path / "toy.toml", mode="realtime", duration_s=60.0)
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 10, 60, "tick 10")
+    cli = CLI
+    connect = ["--connect", run.endpoint]
+    ok = subprocess.run(
+        [*cli, "set", "toy", "b", "gain=0.25", *connect],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert ok.returncode == 0, ok.stdout + ok.stderr
+    assert "set {'gain': 0.25}" in ok.stdout
+    bad = subprocess.run(
+        [*cli, "set", "toy", "b", 'gain="fast"', *connect],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert bad.returncode == 2
+    assert "gain must be a number" in bad.stderr
+    stop = subprocess.run(
+        [*cli, "stop", "toy", *connect], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert stop.returncode == 0, stop.stdout + stop.stderr
+    assert run.wait(20) == 0, run.output()
+    recording = read_recording(run.out)
+    details = [m["detail"] for m in statuses(recording, "b")]
+    assert any("set {'gain': 0.25}" in d for d in details), details
+    assert any("set refused" in d for d in details), details
+
+
+def _pid_of(pids: list[int], agent: str) -> int:
+    """The pid of ``agent`` among agent processes (its name is in the --config JSON)."""
+    for pid in pids:
+        command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        config = command[command.index(b"--config") + 1]
+        if b'"name": "%s"' % agent.encode() in config:
+            return pid
+    raise AssertionError(f"no process for agent {agent}")
