@@ -1,0 +1,80 @@
+"""The demo experiments in graphs/ run end to end through `hilswarm run` (lockstep)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hilswarm.agents.sim import chapter3
+from hilswarm.orchestrator.experiment import load_experiment
+from swarm_harness import REPO, RunProcess, free_port, read_recording
+
+pytestmark = pytest.mark.integration
+
+GRAPHS = REPO / "graphs"
+
+
+@pytest.fixture
+def runs() -> Iterator[list[RunProcess]]:
+    started: list[RunProcess] = []
+    yield started
+    for run in started:
+        run.cleanup()
+
+
+def run_demo(runs: list[RunProcess], tmp_path: Path, name: str) -> dict:
+    run = RunProcess(tmp_path, GRAPHS / f"{name}.toml", port=free_port())
+    runs.append(run)
+    assert run.wait(300) == 0, run.output()
+    assert "recording:" in run.output()
+    return read_recording(run.out)
+
+
+def test_spring_mass_damper_equals_the_sil_euler_closed_loop(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    recording = run_demo(runs, tmp_path, "spring_mass_damper")
+    y = np.array([m["values"] for m in recording["/smd/y"]])
+    assert [m["k"] for m in recording["/smd/y"]] == list(range(len(y)))
+    experiment = load_experiment(GRAPHS / "spring_mass_damper.toml")
+    reference = chapter3.sil_fixed_step(
+        experiment.agents[0].params["K"],
+        z0=experiment.agents[0].initial_state,
+        dt=experiment.dt,
+        n_ticks=experiment.n_ticks - 1,
+        method="euler",
+    )
+    assert y.shape == reference.z.shape
+    np.testing.assert_allclose(y, reference.z, rtol=0, atol=1e-9)
+
+
+def test_consensus_ring_converges_to_the_average_of_initial_states(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    recording = run_demo(runs, tmp_path, "consensus_ring")
+    experiment = load_experiment(GRAPHS / "consensus_ring.toml")
+    average = np.mean([spec.initial_state for spec in experiment.agents], axis=0)
+    for spec in experiment.agents:
+        ys = recording[f"/{spec.name}/y"]
+        assert len(ys) == experiment.n_ticks
+        np.testing.assert_allclose(ys[0]["values"], spec.initial_state)
+        np.testing.assert_allclose(ys[-1]["values"], average, atol=1e-3)
+
+
+def test_lead_follow_every_agent_reaches_its_goal(runs: list[RunProcess], tmp_path: Path) -> None:
+    recording = run_demo(runs, tmp_path, "lead_follow")
+    experiment = load_experiment(GRAPHS / "lead_follow.toml")
+    leader = experiment.agent("leader").params
+    final = {
+        name: np.array(recording[f"/{name}/y"][-1]["values"]) for name in ("leader", "f1", "f2")
+    }
+    goal = np.array(leader["waypoints"][-1])
+    assert np.linalg.norm(final["leader"][:2] - goal) <= leader["waypoint_tolerance_m"] + 1e-9
+    for follower in ("f1", "f2"):
+        params = experiment.agent(follower).params
+        ahead = final[params["leader"]]
+        heading = ahead[2]
+        target = ahead[:2] - params["distance_m"] * np.array([np.cos(heading), np.sin(heading)])
+        assert np.linalg.norm(final[follower][:2] - target) < 0.05, (follower, final)
