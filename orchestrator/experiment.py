@@ -58,6 +58,8 @@ __all__ = [
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 MODES: tuple[str, ...] = ("lockstep", "realtime")
 AGENT_LOSS_POLICIES: tuple[str, ...] = ("stop", "continue")
+#: What the run does when an agent's vehicle enters safe mode (low battery, fault).
+AGENT_SAFE_POLICIES: tuple[str, ...] = ("continue", "stop")
 #: Highest control rate accepted [Hz]; above it no board link or bus keeps up.
 MAX_RATE_HZ = 1000.0
 
@@ -67,6 +69,7 @@ EXPERIMENT_KEYS: tuple[str, ...] = (
     "duration_s",
     "mode",
     "on_agent_loss",
+    "on_agent_safe",
     "watchdog_s",
     "seed",
 )
@@ -88,6 +91,7 @@ OVERRIDE_KEYS: tuple[str, ...] = (
     "duration_s",
     "rate_hz",
     "on_agent_loss",
+    "on_agent_safe",
     "watchdog_s",
     "seed",
     "links",
@@ -136,6 +140,9 @@ class Experiment:
         mode: ``"lockstep"`` (ticks as fast as agents answer, simulated time) or
             ``"realtime"`` (ticks on a monotonic wall-clock schedule).
         on_agent_loss: ``"stop"`` the whole run, or ``"continue"`` without the lost agent.
+        on_agent_safe: when an agent's vehicle enters safe mode (low battery, e-stop, fault):
+            ``"continue"`` the others go on (the safe agent keeps publishing its held outputs),
+            or ``"stop"`` every agent goes to safe mode and the run ends.
         agents: the agents, in graph order (row ``i`` of ``adjacency`` is ``agents[i]``).
         adjacency: ``A`` (read-only ``int8``, ``n x n``): ``A[i][j] = 1`` means agent ``i``
             receives agent ``j``'s output.
@@ -157,6 +164,7 @@ class Experiment:
     watchdog_s: float | None = None
     seed: int | None = None
     graph_file: Path | None = None
+    on_agent_safe: Literal["continue", "stop"] = "continue"
 
     @property
     def dt(self) -> float:
@@ -324,6 +332,7 @@ class _Parser:
             watchdog_s=settings["watchdog_s"],
             seed=settings["seed"],
             graph_file=graph_file,
+            on_agent_safe=settings["on_agent_safe"],
         )
 
     # -- [experiment] ------------------------------------------------------------------------
@@ -347,6 +356,9 @@ class _Parser:
         settings["on_agent_loss"] = self._choice(
             table.get("on_agent_loss", "stop"), AGENT_LOSS_POLICIES, "experiment.on_agent_loss"
         )
+        settings["on_agent_safe"] = self._choice(
+            table.get("on_agent_safe", "continue"), AGENT_SAFE_POLICIES, "experiment.on_agent_safe"
+        )
         settings["watchdog_s"] = self._watchdog(table.get("watchdog_s"), "experiment.watchdog_s")
         settings["seed"] = self._seed(table.get("seed"), "experiment.seed")
         return settings
@@ -362,6 +374,8 @@ class _Parser:
                 settings["mode"] = self._choice(value, MODES, where)
             elif key == "on_agent_loss":
                 settings["on_agent_loss"] = self._choice(value, AGENT_LOSS_POLICIES, where)
+            elif key == "on_agent_safe":
+                settings["on_agent_safe"] = self._choice(value, AGENT_SAFE_POLICIES, where)
             elif key == "rate_hz":
                 settings["rate_hz"] = self._rate(value, where)
             elif key == "duration_s":

@@ -316,3 +316,22 @@ def test_experiment_error_is_a_value_error() -> None:
     assert "f.toml:k: why" in str(error)
     with pytest.raises(ValueError, match="at least one problem"):
         ExperimentError([])
+
+
+def test_on_agent_safe_policy(tmp_path: Path) -> None:
+    graph = """
+        [graph]
+        agents = ["a", "b", "c"]
+        adjacency = [[0, 1, 0], [1, 0, 1], [0, 1, 0]]
+        """
+    path = write(tmp_path, HEADER + graph + AGENTS_ABC)
+    assert load_experiment(path).on_agent_safe == "continue"  # the default
+    assert load_experiment(path, overrides={"on_agent_safe": "stop"}).on_agent_safe == "stop"
+
+    stop = write(tmp_path, HEADER + 'on_agent_safe = "stop"\n' + graph + AGENTS_ABC, "stop.toml")
+    assert load_experiment(stop).on_agent_safe == "stop"
+
+    bad = write(tmp_path, HEADER + 'on_agent_safe = "maybe"\n' + graph + AGENTS_ABC, "bad.toml")
+    [problem] = problems_of(bad)
+    assert problem.key == "experiment.on_agent_safe"
+    assert "'maybe'" in problem.message and "'continue', 'stop'" in problem.message
