@@ -1,13 +1,17 @@
 """Names that experiment files use for vehicles, controllers and plants.
 
 A name is either a short registry name from the tables below or a ``"package.module:Class"``
-path, so users can plug in their own classes without touching hilswarm. Classes are imported
-lazily: loading an experiment that uses ``frisbee`` does not import the Blimpduino model.
+path, so users can plug in their own classes without touching hilswarm. Modules next to the
+experiment file are importable: the orchestrator calls :func:`add_search_path` with the
+experiment's folder and gives agent processes the same folder on ``PYTHONPATH``. Classes are
+imported lazily: loading an experiment that uses ``frisbee`` does not import the Blimpduino model.
 """
 
 from __future__ import annotations
 
 import importlib
+import sys
+from pathlib import Path
 from typing import Any
 
 from hilswarm.agents.errors import HilswarmError
@@ -39,6 +43,14 @@ PLANTS: dict[str, str] = {
     "differential_drive": "hilswarm.agents.sim.differential_drive:DifferentialDrive",
     "blimp": "hilswarm.agents.sim.blimp:BlimpPlant",
 }
+
+
+def add_search_path(folder: str | Path) -> None:
+    """Make modules in ``folder`` (an experiment file's folder) importable by name."""
+    entry = str(Path(folder).resolve())
+    if entry not in sys.path:
+        sys.path.insert(0, entry)
+        importlib.invalidate_caches()
 
 
 def _resolve(kind: str, table: dict[str, str], name: str) -> Any:

@@ -40,7 +40,12 @@ from hilswarm.agents.errors import (
     VehicleDefinitionError,
 )
 from hilswarm.agents.link.url import link_scheme
-from hilswarm.agents.registry import RegistryError, resolve_controller, resolve_vehicle
+from hilswarm.agents.registry import (
+    RegistryError,
+    add_search_path,
+    resolve_controller,
+    resolve_vehicle,
+)
 from hilswarm.orchestrator.experiment import AgentSpec, Experiment, parse_experiment
 from hilswarm.orchestrator.graph_facts import GraphFacts, graph_facts
 from hilswarm.orchestrator.problems import ExperimentError, Problem
@@ -96,6 +101,7 @@ def check_experiment(experiment: Experiment, report: CheckReport | None = None) 
     """Run the deep checks on a loaded experiment, adding to ``report`` (or a new one)."""
     report = report or CheckReport(experiment.path, experiment)
     report.experiment = experiment
+    add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
     report.facts = graph_facts(experiment.agent_names, experiment.adjacency)
     _check_settings(experiment, report)
     _check_graph(experiment, report.facts, report)
@@ -225,6 +231,15 @@ class _AgentCheck:
         except (HilswarmError, ValueError, TypeError) as exc:
             self.problem(_vehicle_error_key(exc), str(exc))
             return
+        except NotImplementedError as exc:  # an unfinished `hilswarm new` skeleton
+            self.problem("vehicle", f"vehicle {spec.vehicle!r} is not finished: {exc}")
+            return
+        except Exception as exc:  # user code: report it with the agent's key, never a traceback
+            self.problem(
+                "vehicle",
+                f"constructing vehicle {spec.vehicle!r} failed: {type(exc).__name__}: {exc}",
+            )
+            return
         # Sizes may be per instance (a simulated vehicle takes them from its plant).
         n_inputs = getattr(self.vehicle, "n_inputs", None)
         n_outputs = getattr(self.vehicle, "n_outputs", None)
@@ -239,7 +254,7 @@ class _AgentCheck:
                 self.problem(
                     "link",
                     f'missing; vehicle {spec.vehicle!r} needs a board: give link = "sim://" '
-                    "for a simulated board, or a serial port / xbee:// address",
+                    "for a simulated board, or a serial port such as /dev/ttyUSB0",
                 )
             return None
         try:

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 from hilswarm.agents.agent import run_agent
+from hilswarm.agents.registry import add_search_path
 from hilswarm.orchestrator.commands.overrides import overrides_from_args
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import agent_config_for
@@ -39,6 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the agent until the experiment stops it."""
     experiment = load_experiment(args.experiment, overrides=overrides_from_args(args))
+    add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
     if args.name not in experiment.agent_names:
         known = ", ".join(experiment.agent_names)
         print(

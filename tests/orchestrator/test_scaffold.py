@@ -154,3 +154,36 @@ def test_plans_are_pure(tmp_path):
     assert not any(f.path.exists() for f in files)
     with pytest.raises(ScaffoldError, match="kind"):
         plan_device("lamp", tmp_path, kind="motor")
+
+
+def _hilswarm(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    return subprocess.run(
+        [sys.executable, "-m", "hilswarm.orchestrator.cli", *args],
+        capture_output=True, text=True, timeout=120, check=False, cwd=cwd, env=env,
+    )  # fmt: skip
+
+
+def test_check_finds_the_skeleton_beside_its_experiment_and_says_what_is_unfinished(tmp_path):
+    """No PYTHONPATH, another working directory: the experiment's folder is importable."""
+    folder = tmp_path / "rovers"
+    assert main(["new", "vehicle", "MyRover", "--dir", str(folder)]) == 0
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+
+    unfinished = _hilswarm("check", str(folder / "my_rover.toml"), cwd=elsewhere)
+    assert unfinished.returncode == 2, unfinished.stdout + unfinished.stderr
+    assert "agents.my_rover.vehicle" in unfinished.stderr + unfinished.stdout
+    assert "is not finished: FILL IN MyRover.setup_devices()" in unfinished.stderr
+    assert "Traceback" not in unfinished.stderr
+
+    source = (folder / "my_rover.py").read_text()
+    filled = source.split("    def setup_devices(self)")[0] + FILLED_VEHICLE_METHODS
+    filled = filled.replace(
+        "from hilswarm.agents.link.sim_board import PinPlant\n",
+        "from hilswarm.agents.devices.output_pin import OutputPin\n"
+        "from hilswarm.agents.link.sim_board import PinPlant\n",
+    )
+    (folder / "my_rover.py").write_text(filled)
+    finished = _hilswarm("check", str(folder / "my_rover.toml"), cwd=elsewhere)
+    assert finished.returncode == 0, finished.stdout + finished.stderr
