@@ -221,6 +221,8 @@ def _open_board(config: AgentConfig, vehicle: Any) -> Any:
 
 # Queue items: (kind, payload...). Kinds are small ints for speed.
 _TICK, _NEIGHBOUR, _CONTROL, _SET, _MANAGER_GONE, _SIGNAL = range(6)
+#: No agent missing (the common tick).
+_NOBODY: frozenset[str] = frozenset()
 
 
 class Agent:
@@ -410,8 +412,7 @@ class Agent:
         try:
             session = self._open_bus()
             self.lifecycle.connect()
-            self.hardware = self._hardware_factory(self.config)
-            self._u = np.zeros(int(self.hardware.vehicle.n_inputs))
+            self.use_hardware(self._hardware_factory(self.config))
             self.lifecycle.configure()
             self._declare(session)
             self.lifecycle.arm(detail=f"neighbours: {', '.join(self.config.neighbours) or '-'}")
@@ -445,7 +446,7 @@ class Agent:
             if kind == _TICK:
                 self._on_tick(item[1])
             elif kind == _NEIGHBOUR:
-                self._store_neighbour(item[1], item[2])
+                self.receive_neighbour(item[1], item[2])
             elif kind == _SET:
                 self._on_set(item[1])
             elif kind == _CONTROL:
@@ -458,15 +459,22 @@ class Agent:
         self._go_safe(self._stop_requested)
         return 0
 
-    def _store_neighbour(self, name: str, payload: bytes) -> None:
+    def use_hardware(self, hardware: AgentHardware) -> None:
+        """Take the built vehicle/board/controller (``run`` does this with its factory)."""
+        self.hardware = hardware
+        self._u = np.zeros(int(hardware.vehicle.n_inputs))
+
+    def receive_neighbour(self, name: str, payload: bytes) -> None:
+        """Store a neighbour's y message (what the main loop does with each one it drains)."""
         k, _t, values = bus.decode_vector(payload)
+        values.flags.writeable = False  # shared with the controller: read-only, no copy
         history = self._neighbour_y[name]
         history[k] = values
         self._received_from.add(name)
         if len(history) > NEIGHBOUR_HISTORY:
             del history[min(history)]
 
-    def _neighbour_outputs(self, k_prev: int, missing: set[str], stale_ok: bool) -> dict:
+    def _neighbour_outputs(self, k_prev: int, missing: frozenset[str], stale_ok: bool) -> dict:
         """Neighbours' y_{k_prev}; waits (bounded) for those the manager reports in."""
         result: dict[str, np.ndarray | None] = {}
         waiting = []
@@ -497,7 +505,7 @@ class Agent:
                 except queue.Empty:
                     continue
                 if item[0] == _NEIGHBOUR:
-                    self._store_neighbour(item[1], item[2])
+                    self.receive_neighbour(item[1], item[2])
                     if item[1] in waiting and k_prev in self._neighbour_y[item[1]]:
                         waiting.remove(item[1])
                         result[item[1]] = self._neighbour_y[item[1]][k_prev]
@@ -520,7 +528,7 @@ class Agent:
                 tick = bus.decode_tick(item[1])
                 skipped += 1
             elif item[0] == _NEIGHBOUR:
-                self._store_neighbour(item[1], item[2])
+                self.receive_neighbour(item[1], item[2])
             elif item[0] == _CONTROL:
                 self._on_control(item[1])
             else:
@@ -528,25 +536,64 @@ class Agent:
         return tick, skipped
 
     def _on_tick(self, payload: bytes) -> None:
-        clock = self._clock
         tick, skipped = self._latest_tick(payload)
         if tick.k <= self.k:
             return  # duplicate or stale tick
+        if self.lifecycle.state_id == "armed":
+            self.lifecycle.start()
+        missing = _NOBODY
+        if tick.missing:
+            names = self.config.agent_names
+            missing = frozenset(names[i] for i in tick.missing if i < len(names))
+        k, t = tick.k, tick.t
+        y_payload, report, u_new, x_hat = self.tick_work(k, t, skipped=skipped, missing=missing)
+        self._y_pub.put(y_payload, attachment=report)
+        if u_new is not None and self._extra_listeners[0].is_set():
+            self._u_pub.put(bus.encode_vector(k, t - self.config.dt, u_new))
+        if x_hat is not None and x_hat.size and self._extra_listeners[1].is_set():
+            self._x_pub.put(bus.encode_vector(k, t - self.config.dt, x_hat))
+        if self._queue_replay:
+            for item in self._queue_replay:
+                self._queue.put(item)
+            self._queue_replay.clear()
+
+    def tick_work(
+        self,
+        k: int,
+        t: float,
+        *,
+        skipped: int = 0,
+        missing: frozenset[str] = frozenset(),
+    ) -> tuple[bytes, bytes, np.ndarray | None, np.ndarray | None]:
+        """The agent's own work for tick ``k`` at experiment time ``t`` [s], without the bus.
+
+        Computes ``u_k`` from ``u_{k-1}``, ``y_{k-1}`` and the neighbours' ``y_{k-1}`` (those in
+        ``missing`` count as no data), applies it, exchanges with the board, senses ``y_k`` and
+        encodes it. Any failure of the controller or the vehicle/board puts the agent in safe
+        mode; it still senses and answers.
+
+        Args:
+            k: tick index (> the last one handled).
+            t: experiment time of the tick [s].
+            skipped: ticks dropped before this one because the agent fell behind.
+            missing: agents whose ``y_{k-1}`` the manager reports missing.
+
+        Returns:
+            ``(y message, tick report, u_k or None, x_hat_k or None)``: the payload and
+            attachment to publish on the y key, and what was computed (``None``: no controller
+            step this tick).
+        """
+        clock = self._clock
         lifecycle = self.lifecycle
-        if lifecycle.state_id == "armed":
-            lifecycle.start()
         hw = self.hardware
         vehicle = hw.vehicle
-        k, t = tick.k, tick.t
+        dt = self.config.dt
         t0 = clock()
-        active = lifecycle.state_id == "running"
         u_new: np.ndarray | None = None
-        if k > 0 and active and self._y is not None:
-            names = self.config.agent_names
-            missing = {names[i] for i in tick.missing if i < len(names)}
+        if k > 0 and self._y is not None and lifecycle.state_id == "running":
             neighbours = self._neighbour_outputs(k - 1, missing, stale_ok=skipped > 0)
             try:
-                u_new = hw.model.step(self._u, self._y, t=t - self.config.dt, neighbours=neighbours)
+                u_new = hw.model.step(self._u, self._y, t=t - dt, neighbours=neighbours)
             except Exception as exc:  # user controller code: any failure means safe mode
                 logger.exception("%s: controller failed at tick %d", self.config.name, k)
                 self._go_safe(f"controller failed at tick {k}: {type(exc).__name__}: {exc}")
@@ -559,7 +606,9 @@ class Agent:
             if k > 0:  # tick 0 senses what connect() primed: the initial state
                 vehicle.exchange()
             t2 = clock()
-            y = np.asarray(vehicle.sense(k, t), dtype=np.float64)
+            y = vehicle.sense(k, t)
+            if type(y) is not np.ndarray or y.dtype != np.float64:
+                y = np.asarray(y, dtype=np.float64)
         except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
             t2 = clock()
             logger.exception("%s: vehicle/board failed at tick %d", self.config.name, k)
@@ -568,21 +617,15 @@ class Agent:
         t3 = clock()
         self.k = k
         self._y = y
-        timing = bus.AgentTiming(t1 - t0, t2 - t1, t3 - t2, skipped)
         x_hat = hw.model.x_hat if u_new is not None else None
-        report = bus.encode_report(timing, u_new, x_hat)
-        self._y_pub.put(bus.encode_vector(k, t, y), attachment=report)
-        if u_new is not None and self._extra_listeners[0].is_set():
-            self._u_pub.put(bus.encode_vector(k, t - self.config.dt, u_new))
-        if x_hat is not None and x_hat.size and self._extra_listeners[1].is_set():
-            self._x_pub.put(bus.encode_vector(k, t - self.config.dt, x_hat))
+        report = bus.encode_report(
+            bus.AgentTiming(t1 - t0, t2 - t1, t3 - t2, skipped), u_new, x_hat
+        )
+        y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
             reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
             lifecycle.enter_safe(detail=str(reason))
-        if self._queue_replay:
-            for item in self._queue_replay:
-                self._queue.put(item)
-            self._queue_replay.clear()
+        return y_payload, report, u_new, x_hat
 
     # -- commands --------------------------------------------------------------------------
 

@@ -1,0 +1,258 @@
+"""Agent tick benchmark: the agent's own per-tick work, in one process, without the bus.
+
+What one agent does for every tick besides talking to Zenoh: take in its neighbours' outputs
+(decode), decode the tick, run its controller (``ControlModel.step``), apply ``u`` to the
+vehicle, exchange with the board (a ``sim://`` board advancing the pin-level plant), sense
+``y`` and encode ``y`` and the tick report. It is measured through the agent's own methods
+(:meth:`Agent.receive_neighbour`, :meth:`Agent.tick_work`) on hardware built exactly as an
+agent process builds it (:func:`build_hardware`), for three cases:
+
+* ``frisbee``   — FrisbeeBot on ``sim://`` with the waypoint controller (2 ring neighbours);
+* ``consensus`` — SimulatedVehicle (2-D integrator) with linear consensus (2 neighbours);
+* ``smd``       — SimulatedVehicle (spring-mass-damper) with state feedback (no neighbours).
+
+Each figure is also given as a multiple of two baselines measured in the same process: a bare
+numpy matrix-vector step of the controller's size (``K @ y``, 2 x 4) and a bare Zenoh put of an
+agent's y message (with its report attachment) from a client session to a loopback router
+that has a subscriber for it.
+
+    python benchmarks/agent_tick.py                 # 20000 ticks per case
+    python benchmarks/agent_tick.py --short         # CI-sized (< 20 s)
+    python benchmarks/agent_tick.py --profile frisbee   # cProfile of one case
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from hilswarm.agents import bus
+from hilswarm.agents.agent import Agent, AgentConfig, build_hardware
+
+#: Control period of every case [s] (100 Hz, the benchmark target rate).
+DT = 0.01
+#: Waypoints of the Frisbee case [m, world frame]: a 1 m square, so it pivots and drives.
+SQUARE = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]
+
+
+@dataclass(frozen=True)
+class Case:
+    """One benchmark case: an agent configuration and the outputs its neighbours send."""
+
+    name: str
+    title: str
+    config: AgentConfig
+
+
+def cases() -> list[Case]:
+    """The three cases of the module docstring."""
+    ring = ("a0", "a1", "a2")
+    return [
+        Case(
+            "frisbee",
+            "Frisbee on sim:// + waypoint",
+            AgentConfig(
+                experiment="bench",
+                name="a0",
+                agent_names=ring,
+                neighbours=("a1", "a2"),
+                vehicle="frisbee",
+                link="sim://",
+                controller="waypoint",
+                dt=DT,
+                params={"waypoints": SQUARE},
+                initial_state=(0.0, 0.0, 0.0),
+            ),
+        ),
+        Case(
+            "consensus",
+            "integrator + consensus",
+            AgentConfig(
+                experiment="bench",
+                name="a0",
+                agent_names=ring,
+                neighbours=("a1", "a2"),
+                vehicle="simulated",
+                link=None,
+                controller="consensus",
+                dt=DT,
+                vehicle_params={"plant": "integrator", "plant_params": {"n_dims": 2}},
+                initial_state=(1.0, 0.0),
+            ),
+        ),
+        Case(
+            "smd",
+            "spring-mass-damper + state feedback",
+            AgentConfig(
+                experiment="bench",
+                name="a0",
+                agent_names=("a0",),
+                neighbours=(),
+                vehicle="simulated",
+                link=None,
+                controller="state_feedback",
+                dt=DT,
+                vehicle_params={"plant": "spring_mass_damper"},
+                params={"K": [[3.01, 4.0, 0.0, 0.0], [0.0, 0.0, 3.01, 4.0]]},
+                initial_state=(4.0, 0.0, -4.0, 0.0),
+            ),
+        ),
+    ]
+
+
+def offline_agent(config: AgentConfig) -> Agent:
+    """An agent with its hardware built and its lifecycle at ``running``, never on a bus."""
+    agent = Agent(config, ["tcp/127.0.0.1:9"])  # never connected: no session is opened
+    agent.use_hardware(build_hardware(config))
+    for event in ("connect", "configure", "arm", "start"):
+        agent.lifecycle.send(event)
+    return agent
+
+
+def tick_loop(case: Case) -> Callable[[int], float]:
+    """A function running ``n`` more ticks of ``case``; returns seconds per tick."""
+    agent = offline_agent(case.config)
+    n_out = int(agent.hardware.vehicle.n_outputs)
+    neighbour_y = {
+        name: np.linspace(0.1, 0.3, n_out) + i for i, name in enumerate(case.config.neighbours)
+    }
+    state = {"k": 0}
+    clock = time.perf_counter
+
+    def run(n: int) -> float:
+        k0 = state["k"]
+        start = clock()
+        for k in range(k0, k0 + n):
+            t = k * DT
+            if k > 0:  # neighbours' y_{k-1} arrive before tick k
+                for name, values in neighbour_y.items():
+                    agent.receive_neighbour(name, bus.encode_vector(k - 1, t - DT, values))
+            tick = bus.decode_tick(bus.encode_tick(bus.TickMessage(k, t)))
+            agent.tick_work(tick.k, tick.t)
+        state["k"] = k0 + n
+        return (clock() - start) / n
+
+    return run
+
+
+def measure(run: Callable[[int], float], ticks: int, repeats: int) -> float:
+    """Median over ``repeats`` batches of ``ticks // repeats`` ticks [s per tick]."""
+    batch = max(1, ticks // repeats)
+    run(min(batch, 200))  # warm-up: first ticks, lazy imports, caches
+    return statistics.median(run(batch) for _ in range(repeats))
+
+
+def numpy_baseline(repeats: int) -> float:
+    """Seconds per bare ``K @ y`` (2 x 4 gain, the state-feedback size)."""
+    gain = np.array([[3.01, 4.0, 0.0, 0.0], [0.0, 0.0, 3.01, 4.0]])
+    y = np.array([4.0, 0.0, -4.0, 0.0])
+    n = 20000
+    best = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(n):
+            gain @ y
+        best.append((time.perf_counter() - start) / n)
+    return statistics.median(best)
+
+
+def zenoh_baseline(n: int, port: int) -> float | None:
+    """Seconds per bare Zenoh put of a y message with its report, client -> loopback router.
+
+    Returns ``None`` when no loopback session can be opened (e.g. the port is in use).
+    """
+    import zenoh  # noqa: PLC0415 - only this baseline needs it directly
+
+    keys = bus.BusKeys("bench")
+    endpoint = bus.loopback_endpoint(port)
+    try:
+        router = bus.open_session(bus.listen_config([endpoint]))
+    except bus.BusConnectionError as exc:
+        print(f"(no Zenoh baseline: {exc})", file=sys.stderr)
+        return None
+    received = [0]
+    try:
+        subscriber = router.declare_subscriber(
+            keys.y("a0"),
+            zenoh.handlers.Callback(
+                lambda _s: received.__setitem__(0, received[0] + 1), indirect=False
+            ),
+        )
+        client = bus.open_session(bus.client_config([endpoint]))
+        try:
+            publisher = client.declare_publisher(keys.y("a0"), **bus.TICK_PATH_QOS)
+            deadline = time.monotonic() + 5.0
+            while not bus.has_subscribers(publisher) and time.monotonic() < deadline:
+                time.sleep(0.01)
+            payload = bus.encode_vector(1, DT, np.zeros(3))
+            report = bus.encode_report(bus.AgentTiming(), np.zeros(2), np.zeros(5))
+            for _ in range(200):  # warm-up
+                publisher.put(payload, attachment=report)
+            start = time.perf_counter()
+            for _ in range(n):
+                publisher.put(payload, attachment=report)
+            per_put = (time.perf_counter() - start) / n
+            publisher.undeclare()
+        finally:
+            client.close()
+        subscriber.undeclare()
+    finally:
+        router.close()
+    return per_put
+
+
+def profile(case: Case, ticks: int) -> None:
+    """Print the cProfile of ``ticks`` ticks of ``case`` (after a warm-up)."""
+    run = tick_loop(case)
+    run(200)
+    profiler = cProfile.Profile()
+    profiler.runcall(run, ticks)
+    pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line (see the module docstring)."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--short", action="store_true", help="CI-sized run (< 20 s)")
+    parser.add_argument("--ticks", type=int, default=None, help="ticks per case")
+    parser.add_argument("--cases", nargs="*", default=None, help="frisbee consensus smd")
+    parser.add_argument("--profile", metavar="CASE", help="cProfile one case instead")
+    parser.add_argument("--no-zenoh", action="store_true", help="skip the Zenoh put baseline")
+    parser.add_argument("--port", type=int, default=17449, help="loopback port (Zenoh baseline)")
+    args = parser.parse_args(argv)
+    ticks = args.ticks or (3000 if args.short else 20000)
+    repeats = 5 if args.short else 9
+    chosen = [c for c in cases() if args.cases is None or c.name in args.cases]
+    if args.profile:
+        by_name = {c.name: c for c in cases()}
+        if args.profile not in by_name:
+            parser.error(f"--profile: unknown case {args.profile!r} ({', '.join(by_name)})")
+        profile(by_name[args.profile], ticks)
+        return 0
+
+    matvec = numpy_baseline(repeats)
+    put = None if args.no_zenoh else zenoh_baseline(2000 if args.short else 20000, args.port)
+    print(f"baselines: numpy K @ y (2x4) {matvec * 1e6:7.2f} us", end="")
+    print(f", Zenoh put (client -> loopback router) {put * 1e6:7.2f} us" if put else "")
+    print(
+        f"{'case':<11} {'agent work':>11} {'x matvec':>9} {'x put':>7}   ({ticks} ticks, dt {DT} s)"
+    )
+    for case in chosen:
+        per_tick = measure(tick_loop(case), ticks, repeats)
+        ratio_put = f"{per_tick / put:7.1f}" if put else "      -"
+        print(
+            f"{case.name:<11} {per_tick * 1e6:8.1f} us {per_tick / matvec:9.0f} {ratio_put}"
+            f"   {case.title}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
