@@ -15,10 +15,12 @@ one checked round trip (docs/protocol.md). Transports measured:
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Callable
 from contextlib import AbstractContextManager
+from pathlib import Path
 
 from hilswarm.agents.errors import SimulatorError
 from hilswarm.agents.link.board import PinConfig, PinMode
@@ -76,6 +78,12 @@ def report(name: str, rate: float, sent: float, received: float, *, bound: bool)
     return fraction
 
 
+def cpu_seconds(pid: int) -> float:
+    """CPU time [s] (user + system) process ``pid`` has used so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def bench_simavr(paced: bool, seconds: float) -> float | None:
     """Measure the real firmware in simavr; None if it is not built."""
     try:
@@ -89,8 +97,19 @@ def bench_simavr(paced: bool, seconds: float) -> float | None:
         serial_board = board.serial
         if serial_board is None:
             raise SimulatorError("simavr board has no serial link after open()")
+        process = board.harness.process
+        if process is None:
+            raise SimulatorError("simavr board has no harness process after open()")
+        harness0, host0, wall0 = cpu_seconds(process.pid), time.process_time(), time.monotonic()
         rate, sent, received = run(serial_board, board.exchange, seconds)
-    return report(f"simavr {'paced' if paced else 'unpaced'}", rate, sent, received, bound=paced)
+        wall = time.monotonic() - wall0
+        harness_cpu = (cpu_seconds(process.pid) - harness0) / wall
+        host_cpu = (time.process_time() - host0) / wall
+    fraction = report(f"simavr {'paced' if paced else 'unpaced'}", rate, sent, received,
+                      bound=paced)
+    print(f"{'':<16} CPU: harness {100 * harness_cpu:3.0f} %, host (this process) "
+          f"{100 * host_cpu:3.0f} % of one core")
+    return fraction
 
 
 def bench_loopback(kind: str, seconds: float) -> None:

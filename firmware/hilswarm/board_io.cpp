@@ -33,7 +33,20 @@ void set_pin_mode(uint8_t pin, uint8_t mode) {
   }
 }
 
-void write_digital(uint8_t pin, uint8_t level) { digitalWrite(pin, level ? HIGH : LOW); }
+// Only called for DIGITAL_OUT pins, whose timer output set_pin_mode already disconnected: the
+// port bit alone, without digitalWrite's PWM check (~1 us instead of ~4 us per pin).
+void write_digital(uint8_t pin, uint8_t level) {
+  volatile uint8_t* out = portOutputRegister(digitalPinToPort(pin));
+  const uint8_t mask = digitalPinToBitMask(pin);
+  const uint8_t sreg = SREG;
+  cli();
+  if (level) {
+    *out |= mask;
+  } else {
+    *out = static_cast<uint8_t>(*out & ~mask);
+  }
+  SREG = sreg;
+}
 
 void write_pwm(uint8_t pin, uint8_t duty) { analogWrite(pin, duty); }
 

@@ -8,7 +8,8 @@
 namespace hilswarm {
 
 // Largest encoded size of `len` input bytes (without the 0x00 delimiter).
-inline size_t cobs_max_encoded(size_t len) { return len + len / 254 + 1; }
+// (Frames are short: skip the division, a library call on the AVR, below one full block.)
+inline size_t cobs_max_encoded(size_t len) { return len + (len < 254 ? 0 : len / 254) + 1; }
 
 // Encodes `len` bytes of `in` into `out` (no delimiter appended). Returns the encoded length,
 // or 0 if `out_cap` is too small (an encoding is never empty).

@@ -145,10 +145,13 @@ void Engine::on_tick(uint8_t seq, const uint8_t* body, uint8_t len, uint32_t now
   if (!e.ok()) return error(seq, e, out);
 
   if (!(flags_ & wire::kStatusEstopped)) {
-    const uint32_t dout = read_u24(body);
-    for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+    // dout a byte at a time, shifted one pin per step (variable shifts are loops on the AVR).
+    uint8_t levels = 0;
+    for (uint8_t pin = 0; pin < wire::kPinCount;
+         ++pin, levels = static_cast<uint8_t>(levels >> 1)) {
+      if ((pin & 7U) == 0) levels = body[pin / 8];
       if (config_[pin].mode == wire::kModeDigitalOut) {
-        hal::write_digital(pin, (dout >> pin) & 1U);
+        hal::write_digital(pin, static_cast<uint8_t>(levels & 1U));
       }
     }
     uint8_t i = kTickHeader;
@@ -167,13 +170,15 @@ void Engine::on_tick(uint8_t seq, const uint8_t* body, uint8_t len, uint32_t now
   out.begin(wire::kTick | wire::kReplyBit, seq);
   out.put_u8(take_status());
   out.put_u32(now_us);
-  const uint32_t rmask = read_u24(body + 3);
-  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
-    if (!(rmask & (1UL << pin))) continue;
-    if (config_[pin].mode == wire::kModeAnalogIn) {
-      out.put_u16(hal::read_analog(pin));
-    } else {
-      out.put_u16(hal::read_digital(pin));
+  for (uint8_t first = 0; first < wire::kPinCount; first = static_cast<uint8_t>(first + 8)) {
+    uint8_t bits = body[3 + first / 8];  // check_tick: no rmask bit beyond the last pin
+    for (uint8_t pin = first; bits != 0; ++pin, bits = static_cast<uint8_t>(bits >> 1)) {
+      if (!(bits & 1U)) continue;
+      if (config_[pin].mode == wire::kModeAnalogIn) {
+        out.put_u16(hal::read_analog(pin));
+      } else {
+        out.put_u16(hal::read_digital(pin));
+      }
     }
   }
 }

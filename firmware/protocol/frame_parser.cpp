@@ -7,6 +7,9 @@ namespace hilswarm {
 FrameParser::Result FrameParser::feed(uint8_t byte) {
   if (byte != wire::kDelimiter) {
     decoder_.feed(byte);
+    while (static_cast<uint8_t>(crc_len_ + wire::kCrcSize) < decoder_.length()) {
+      crc_ = crc16_update(crc_, buf_[crc_len_++]);
+    }
     return kNone;
   }
   // Delimiter: judge the frame, then start the next one.
@@ -22,14 +25,15 @@ FrameParser::Result FrameParser::feed(uint8_t byte) {
   } else {
     const uint8_t n = static_cast<uint8_t>(decoder_.length() - wire::kCrcSize);
     const uint16_t got = static_cast<uint16_t>(buf_[n] | (buf_[n + 1] << 8));
-    if (crc16(buf_, n) == got) {
+    while (crc_len_ < n) crc_ = crc16_update(crc_, buf_[crc_len_++]);  // normally none left
+    if (crc_ == got) {
       payload_len_ = n;
       result = kFrame;
     } else {
       result = kBadCrc;
     }
   }
-  decoder_.reset();
+  reset();
   return result;
 }
 

@@ -6,6 +6,7 @@
 #include <stdint.h>
 
 #include "cobs.h"
+#include "crc16.h"
 #include "wire.h"
 
 namespace hilswarm {
@@ -27,7 +28,11 @@ class FrameParser {
   FrameParser& operator=(const FrameParser&) = delete;
 
   // Forgets any partial frame (the next byte starts a new one).
-  void reset() { decoder_.reset(); }
+  void reset() {
+    decoder_.reset();
+    crc_ = kCrc16Init;
+    crc_len_ = 0;
+  }
 
   // Consumes one received byte. Returns kFrame when `byte` completed a valid frame; the payload
   // stays valid until the next call to feed().
@@ -41,6 +46,11 @@ class FrameParser {
   uint8_t buf_[wire::kMaxFrame];
   CobsDecoder decoder_;
   uint8_t payload_len_ = 0;
+  // CRC of buf_[0, crc_len_), folded in while the frame arrives (the CPU is idle between bytes)
+  // so the delimiter costs no CRC pass. The last two decoded bytes are held back: they may be
+  // the frame's own CRC.
+  uint16_t crc_ = kCrc16Init;
+  uint8_t crc_len_ = 0;
 };
 
 }  // namespace hilswarm

@@ -29,6 +29,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/prctl.h>
 #include <termios.h>
 #include <time.h>
 #include <unistd.h>
@@ -38,6 +39,7 @@
 #include <avr_ioport.h>
 #include <avr_uart.h>
 #include <sim_avr.h>
+#include <sim_cycle_timers.h>
 #include <sim_elf.h>
 #include <sim_io.h>
 #include <sim_irq.h>
@@ -55,15 +57,20 @@ enum {
   REG_TCCR1A = 0x80, REG_TCCR1B = 0x81,
   REG_ICR1L = 0x86, REG_OCR1AL = 0x88, REG_OCR1BL = 0x8A,
   REG_TCCR2A = 0xB0, REG_OCR2A = 0xB3, REG_OCR2B = 0xB4,
-  REG_UCSR0B = 0xC1,
+  REG_UCSR0A = 0xC0, REG_UCSR0B = 0xC1, REG_UCSR0C = 0xC2, REG_UBRR0L = 0xC4, REG_UBRR0H = 0xC5,
 };
-enum { BIT_COMA1 = 7, BIT_COMB1 = 5, BIT_RXEN0 = 4 };
+enum { BIT_COMA1 = 7, BIT_COMB1 = 5, BIT_RXEN0 = 4, BIT_U2X0 = 1 };
 
 #define PIN_COUNT 20
 #define ANALOG_PIN_BASE 14
-#define INSTRUCTIONS_PER_CHUNK 4000
+#define UNPACED_SLICE_CYCLES 4000u         // --unpaced: poll the pty/stdin this often (sim)
+#define PACED_IDLE_STEP_NS 1000000LL        // --paced, link idle: wake at least every 1 ms
+#define PACED_ACTIVE_NS 5000000LL           // --paced: the link counts as active this long
+                                            // after a byte moved (then: 0.9 byte time steps)
+#define PACED_MIN_SLEEP_NS 2000LL           // --paced: shorter waits are run through
+#define PACED_MAX_RUN_CYCLES 16000u         // --paced catch-up: poll at least every 1 ms (sim)
+#define PACED_MAX_LAG_NS 50000000LL         // --paced: a backlog beyond 50 ms is dropped
 #define DISCONNECTED_RECHECK_NS 5000000LL   // poll a disconnected pty every 5 ms (wall)
-#define MAX_PACED_SLEEP_NS 20000000LL       // never sleep longer than 20 ms at once
 #define QUEUE_LIMIT (1u << 20)              // 1 MiB per direction
 #define LINE_MAX_LEN 256
 
@@ -138,6 +145,10 @@ static int g_host_connected = 0;
 static FILE *g_ctl = NULL;  // the control channel (original stdout)
 static uint64_t g_cycle_offset = 0;  // keeps simulated time monotonic across AVR resets
 static uint64_t g_last_cycle = 0;
+static int g_paced = 1;
+static int64_t g_ref_ns = 0;      // --paced: wall-clock time at which simulated time was ...
+static uint64_t g_ref_cycle = 0;  // ... this cycle (sim_cycles())
+static uint64_t g_last_byte_cycle = 0;  // sim_cycles() when a byte last moved on the wire
 
 static void on_signal(int sig) {
   (void)sig;
@@ -164,14 +175,148 @@ static uint64_t sim_cycles(void) {
   return c + g_cycle_offset;
 }
 
+// --paced: the simulated cycle that corresponds to wall-clock time now_ns.
+static uint64_t cycles_at(int64_t now_ns) {
+  if (now_ns <= g_ref_ns) return g_ref_cycle;
+  const unsigned __int128 elapsed =
+      (unsigned __int128)(uint64_t)(now_ns - g_ref_ns) * g_avr->frequency;
+  return g_ref_cycle + (uint64_t)(elapsed / 1000000000u);
+}
+
+// ---------------------------------------------------------------- wire timing
+//
+// One byte on the simulated wire takes wire_byte_cycles() of simulated time: its frame bits
+// (start + data + parity + stop, from UCSR0B/C) at the slower of the AVR's real baud rate
+// (from UBRR0 and U2X0) and the standard rate it approximates (the host's USB-serial adapter
+// runs at exactly 115200 while a 16 MHz AVR runs at 117647). 115200 8N1 at 16 MHz: 1389 cycles,
+// 86.8 us. simavr 1.6 would count an 11-bit frame (it always adds a parity bit): 93.5 us.
+
+static const uint32_t kStandardBauds[] = {300,    600,    1200,   2400,   4800,   9600,
+                                          14400,  19200,  28800,  38400,  57600,  76800,
+                                          115200, 230400, 250000, 460800, 500000, 921600,
+                                          1000000, 2000000};
+
+static uint64_t wire_byte_cycles(void) {
+  const uint8_t *d = g_avr->data;
+  static const uint8_t kDataBits[8] = {5, 6, 7, 8, 8, 8, 8, 9};
+  const unsigned ucsz = ((d[REG_UCSR0C] >> 1) & 3u) | (((d[REG_UCSR0B] >> 2) & 1u) << 2);
+  const uint64_t frame_bits = 1u + kDataBits[ucsz] + (((d[REG_UCSR0C] >> 4) & 3u) ? 1u : 0u) +
+                              (((d[REG_UCSR0C] >> 3) & 1u) ? 2u : 1u);
+  const uint64_t ubrr = (((unsigned)d[REG_UBRR0H] & 0x0Fu) << 8) | d[REG_UBRR0L];
+  const uint64_t bit_cycles = (ubrr + 1) * (((d[REG_UCSR0A] >> BIT_U2X0) & 1u) ? 8u : 16u);
+  const uint64_t avr_byte = frame_bits * bit_cycles;
+  const double avr_baud = (double)g_avr->frequency / (double)bit_cycles;
+  uint64_t nominal = 0;
+  double best = 0.05;  // a standard rate within 5 % is what the other end of the wire runs at
+  for (size_t i = 0; i < sizeof(kStandardBauds) / sizeof(kStandardBauds[0]); ++i) {
+    const double error = avr_baud / kStandardBauds[i] - 1.0;
+    if (error < best && error > -best) {
+      best = error < 0 ? -error : error;
+      nominal = kStandardBauds[i];
+    }
+  }
+  if (!nominal) return avr_byte;
+  const uint64_t host_byte = (frame_bits * g_avr->frequency + nominal - 1) / nominal;
+  return host_byte > avr_byte ? host_byte : avr_byte;
+}
+
+// simavr paces its UART with cycles_per_byte (RX: RXC raised that long after a byte enters an
+// idle receiver, then once per byte while its FIFO holds more; TX: UDRE/TXC that long after a
+// UDR write). The firmware (re)configures the baud rate at any time, so this runs before every
+// use.
+static uint64_t sync_wire_timing(void) {
+  const uint64_t cycles = wire_byte_cycles();
+  if (g_uart->cycles_per_byte != cycles) g_uart->cycles_per_byte = cycles;
+  return cycles;
+}
+
+// ---------------------------------------------------------------- trace (diagnostics)
+
+static FILE *g_trace = NULL;  // HILSWARM_SIMAVR_TRACE=1: timing events on stderr
+#define TRACE(kind, fmt, ...)                                                          \
+  do {                                                                                 \
+    if (g_trace) {                                                                     \
+      fprintf(g_trace, "%s %llu %lld " fmt "\n", kind, (unsigned long long)sim_cycles(), \
+              (long long)monotonic_ns(), __VA_ARGS__);                                  \
+    }                                                                                  \
+  } while (0)
+
+// Polls simavr's receive FIFO every 64 cycles (4 us at 16 MHz) to log when the firmware reads
+// a byte.
+static avr_cycle_count_t trace_rx_reads(struct avr_t *avr, avr_cycle_count_t when, void *param) {
+  (void)avr;
+  (void)param;
+  static unsigned previous = 0;
+  const unsigned held = uart_fifo_get_read_size(&g_uart->input);
+  if (held < previous) TRACE("rxread", "%u", previous - held);
+  previous = held;
+  return when + 64;
+}
+
 // ---------------------------------------------------------------- UART bridge
 
 static int uart_rx_enabled(void) { return (g_avr->data[REG_UCSR0B] >> BIT_RXEN0) & 1; }
 
-// Moves queued host bytes into simavr's UART FIFO while it has room (never overruns it).
+// A host byte may not enter the wire before it reached the harness: every chunk read from the
+// pty carries the simulated cycle of its arrival (--paced: the cycle matching the wall-clock
+// time of the read, so a simulation that lags behind the wall clock and catches up cannot
+// answer sooner than a real board would).
+#define ARRIVAL_CAPACITY 4096u
+static struct {
+  size_t bytes[ARRIVAL_CAPACITY];  // bytes of g_to_avr that arrived together
+  uint64_t ready[ARRIVAL_CAPACITY];  // sim_cycles() at which they arrived
+  size_t head, len;
+} g_arrivals;
+
+static void note_arrival(size_t n) {
+  const uint64_t now = sim_cycles();
+  uint64_t ready = g_paced ? cycles_at(monotonic_ns()) : now;
+  if (ready < now) ready = now;
+  if (g_arrivals.len == ARRIVAL_CAPACITY) {  // merge into the newest chunk (only later)
+    const size_t last = (g_arrivals.head + g_arrivals.len - 1) % ARRIVAL_CAPACITY;
+    g_arrivals.bytes[last] += n;
+    g_arrivals.ready[last] = ready;
+    return;
+  }
+  const size_t slot = (g_arrivals.head + g_arrivals.len) % ARRIVAL_CAPACITY;
+  g_arrivals.bytes[slot] = n;
+  g_arrivals.ready[slot] = ready;
+  g_arrivals.len++;
+}
+
+static void feed_avr(void);
+
+static avr_cycle_count_t feed_later(struct avr_t *avr, avr_cycle_count_t when, void *param) {
+  (void)avr;
+  (void)when;
+  (void)param;
+  feed_avr();
+  return 0;
+}
+
+// Moves queued host bytes that have arrived into simavr's UART receive FIFO while it has room.
+// A byte entering the FIFO starts its frame on the wire: simavr hands it to the firmware one
+// byte time later and every further byte one byte time after the previous one, so the FIFO is
+// the wire.
 static void feed_avr(void) {
+  if (g_to_avr.len == 0 || !uart_rx_enabled()) return;
+  sync_wire_timing();
   while (g_to_avr.len > 0 && uart_rx_enabled() && !uart_fifo_isfull(&g_uart->input)) {
-    avr_raise_irq(g_uart_in, queue_pop(&g_to_avr));
+    const uint64_t now = sim_cycles();
+    if (g_arrivals.ready[g_arrivals.head] > now) {  // not there yet: feed when it is
+      avr_cycle_timer_cancel(g_avr, feed_later, NULL);
+      avr_cycle_timer_register(g_avr, g_arrivals.ready[g_arrivals.head] - now, feed_later,
+                               NULL);
+      return;
+    }
+    if (--g_arrivals.bytes[g_arrivals.head] == 0) {
+      g_arrivals.head = (g_arrivals.head + 1) % ARRIVAL_CAPACITY;
+      g_arrivals.len--;
+    }
+    const uint8_t b = queue_pop(&g_to_avr);
+    g_last_byte_cycle = now;
+    TRACE("rxfeed", "%u", (unsigned)b);
+    avr_raise_irq(g_uart_in, b);
   }
 }
 
@@ -182,14 +327,73 @@ static void on_uart_xon(struct avr_irq_t *irq, uint32_t value, void *param) {
   feed_avr();
 }
 
+// AVR -> host: simavr reports a byte when the firmware writes UDR0, i.e. when its frame starts.
+// The host gets it when the frame ends: one byte time after the line is free for it.
+#define TX_WIRE_CAPACITY 1024u
+static struct {
+  uint8_t byte[TX_WIRE_CAPACITY];
+  avr_cycle_count_t due[TX_WIRE_CAPACITY];  // simavr cycle at which the stop bit ends
+  size_t head, len;
+  avr_cycle_count_t line_free;  // end of the last frame on the wire
+  int armed;                    // tx_deliver is registered
+} g_tx;
+
+static void flush_to_host(void);
+
+static avr_cycle_count_t tx_deliver(struct avr_t *avr, avr_cycle_count_t when, void *param) {
+  (void)avr;
+  (void)param;
+  while (g_tx.len > 0 && g_tx.due[g_tx.head] <= when) {
+    const uint8_t b = g_tx.byte[g_tx.head];
+    g_tx.head = (g_tx.head + 1) % TX_WIRE_CAPACITY;
+    g_tx.len--;
+    TRACE("deliver", "%u", (unsigned)b);
+    if (!g_host_connected) continue;  // nobody listening: a later host must not read stale bytes
+    if (queue_push(&g_to_host, &b, 1) != 0) {
+      fprintf(stderr, "hilswarm-simavr: host is not reading the pty; output queue full\n");
+      queue_clear(&g_to_host);
+    }
+  }
+  flush_to_host();
+  if (g_tx.len > 0) return g_tx.due[g_tx.head];
+  g_tx.armed = 0;
+  return 0;
+}
+
+// An AVR reset (watchdog) cancels every cycle timer: bytes still on the wire are cut off.
+static void tx_check_reset(void) {
+  if (g_tx.len == 0) return;
+  if (avr_cycle_timer_status(g_avr, tx_deliver, NULL) == 0 &&
+      g_tx.due[g_tx.head] > g_avr->cycle) {
+    g_tx.len = 0;
+    g_tx.armed = 0;
+    g_tx.line_free = 0;
+  }
+}
+
 static void on_uart_output(struct avr_irq_t *irq, uint32_t value, void *param) {
   (void)irq;
   (void)param;
-  if (!g_host_connected) return;  // nobody listening: a later host must not read stale bytes
-  uint8_t b = (uint8_t)value;
-  if (queue_push(&g_to_host, &b, 1) != 0) {
-    fprintf(stderr, "hilswarm-simavr: host is not reading the pty; output queue full\n");
-    queue_clear(&g_to_host);
+  tx_check_reset();
+  const uint64_t byte_cycles = sync_wire_timing();  // before simavr starts its TX pump
+  const avr_cycle_count_t now = g_avr->cycle;
+  if (g_tx.line_free < now || g_tx.line_free > now + TX_WIRE_CAPACITY * byte_cycles) {
+    g_tx.line_free = now;  // idle line (or a cycle counter that restarted)
+  }
+  if (g_tx.len == TX_WIRE_CAPACITY) {  // the firmware ignores UDRE: a real UART loses bytes too
+    fprintf(stderr, "hilswarm-simavr: UART transmit overrun; byte dropped\n");
+    return;
+  }
+  g_tx.line_free += byte_cycles;
+  const size_t slot = (g_tx.head + g_tx.len) % TX_WIRE_CAPACITY;
+  g_tx.byte[slot] = (uint8_t)value;
+  g_tx.due[slot] = g_tx.line_free;
+  g_tx.len++;
+  g_last_byte_cycle = sim_cycles();
+  TRACE("tx", "%u", (unsigned)value);
+  if (!g_tx.armed) {
+    avr_cycle_timer_register(g_avr, g_tx.line_free - now, tx_deliver, NULL);
+    g_tx.armed = 1;
   }
 }
 
@@ -199,13 +403,14 @@ static void flush_to_host(void) {
     size_t n = queue_span(&g_to_host, &data);
     ssize_t w = write(g_master, data, n);
     if (w > 0) {
+      TRACE("hostout", "%zd", w);
       queue_drop(&g_to_host, (size_t)w);
     } else {
       if (w < 0 && errno == EIO) {
         g_host_connected = 0;
         queue_clear(&g_to_host);
       }
-      return;  // EAGAIN: the pty buffer is full, retry after the next chunk
+      return;  // EAGAIN: the pty buffer is full, retry on the next pass
     }
   }
 }
@@ -216,7 +421,9 @@ static void read_from_host(void) {
     if (g_to_avr.len + sizeof(buf) > QUEUE_LIMIT) return;  // back-pressure: leave it in the pty
     ssize_t n = read(g_master, buf, sizeof(buf));
     if (n > 0) {
+      TRACE("hostin", "%zd", n);
       if (queue_push(&g_to_avr, buf, (size_t)n) != 0) return;
+      note_arrival((size_t)n);
       continue;
     }
     if (n < 0 && errno == EIO) g_host_connected = 0;
@@ -540,6 +747,7 @@ static int setup_avr(const options_t *o) {
 
 // ---------------------------------------------------------------- main loop
 
+
 int main(int argc, char **argv) {
   options_t opt;
   if (parse_options(argc, argv, &opt) != 0) return 2;
@@ -562,6 +770,12 @@ int main(int argc, char **argv) {
   signal(SIGPIPE, SIG_IGN);
 
   if (setup_avr(&opt) != 0) return 1;
+  if (getenv("HILSWARM_SIMAVR_TRACE")) {
+    static char trace_buffer[1 << 16];  // buffered: tracing must not slow the bridge much
+    setvbuf(stderr, trace_buffer, _IOFBF, sizeof(trace_buffer));
+    g_trace = stderr;
+    avr_cycle_timer_register(g_avr, 64, trace_rx_reads, NULL);
+  }
   char slave[128];
   g_master = open_pty(slave, sizeof(slave));
   if (g_master < 0) {
@@ -573,12 +787,38 @@ int main(int argc, char **argv) {
 
   reply("PTY %s", slave);
 
-  const int64_t start_ns = monotonic_ns();
+  // Paced mode sleeps in steps of tens of microseconds: ask for a precise timer (default
+  // slack is 50 us).
+  prctl(PR_SET_TIMERSLACK, 1000UL, 0, 0, 0);
+
+  g_paced = opt.paced;
+  g_ref_ns = monotonic_ns();
+  g_ref_cycle = sim_cycles();
+  const uint64_t freq = g_avr->frequency;
+  const uint64_t max_lag_cycles = (uint64_t)PACED_MAX_LAG_NS * freq / 1000000000ULL;
+  const uint64_t active_cycles = (uint64_t)PACED_ACTIVE_NS * freq / 1000000000ULL;
   int64_t next_hup_check_ns = 0;
-  const uint64_t start_cycle = sim_cycles();
   int exit_code = 0;
   while (!g_stop) {
-    for (int i = 0; i < INSTRUCTIONS_PER_CHUNK; ++i) {
+    // 1. Run the AVR: up to the wall clock (paced; never ahead of it) or one slice (unpaced).
+    uint64_t target;
+    const uint64_t cur = sim_cycles();
+    if (opt.paced) {
+      target = cycles_at(monotonic_ns());
+      if (target > cur + max_lag_cycles) {  // the harness was stalled: drop the backlog
+        const uint64_t dropped = target - cur - max_lag_cycles;
+        g_ref_ns += (int64_t)(dropped * 1000000000ULL / freq);
+        for (size_t i = 0; i < g_arrivals.len; ++i) {  // host bytes keep their place in time
+          uint64_t *ready = &g_arrivals.ready[(g_arrivals.head + i) % ARRIVAL_CAPACITY];
+          *ready = *ready > cur + dropped ? *ready - dropped : cur;
+        }
+        target = cycles_at(monotonic_ns());
+      }
+      if (target > cur + PACED_MAX_RUN_CYCLES) target = cur + PACED_MAX_RUN_CYCLES;
+    } else {
+      target = cur + UNPACED_SLICE_CYCLES;
+    }
+    while (sim_cycles() < target) {
       int state = avr_run(g_avr);
       if (state == cpu_Done || state == cpu_Crashed) {
         fprintf(stderr, "hilswarm-simavr: simulated CPU %s at pc=0x%04x\n",
@@ -588,41 +828,23 @@ int main(int argc, char **argv) {
         goto done;
       }
     }
+    tx_check_reset();
+    sync_wire_timing();
 
-    // Sleep budget: how far simulated time runs ahead of the wall clock (paced mode).
+    // 2. Exchange bytes and commands at the current simulated time (host bytes enter the wire
+    // now, not at the start of the slice).
     const int64_t now_ns = monotonic_ns();
-    int64_t sleep_ns = 0;
-    if (opt.paced) {
-      const int64_t sim_ns =
-          (int64_t)((sim_cycles() - start_cycle) * 1000000000ULL / g_avr->frequency);
-      sleep_ns = sim_ns - (now_ns - start_ns);
-      if (sleep_ns < 0) sleep_ns = 0;
-      if (sleep_ns > MAX_PACED_SLEEP_NS) sleep_ns = MAX_PACED_SLEEP_NS;
-    }
-
-    struct pollfd fds[2];
-    int nfds = 0;
-    fds[nfds].fd = STDIN_FILENO;
-    fds[nfds++].events = POLLIN;
+    struct pollfd fds[2] = {{STDIN_FILENO, POLLIN, 0}, {g_master, 0, 0}};
     const int watch_master = g_host_connected || now_ns >= next_hup_check_ns;
-    if (watch_master) {
-      fds[nfds].fd = g_master;
-      fds[nfds].events = POLLIN | (g_to_host.len ? POLLOUT : 0);
-      ++nfds;
-    }
-    // While disconnected the master reports POLLHUP at once: check it without sleeping.
-    struct timespec ts = {0, 0};
-    if (!(watch_master && !g_host_connected)) {
-      ts.tv_sec = sleep_ns / 1000000000LL;
-      ts.tv_nsec = sleep_ns % 1000000000LL;
-    }
-    int ready = ppoll(fds, (nfds_t)nfds, &ts, NULL);
-    if (ready < 0) {
-      if (errno == EINTR) continue;
+    if (watch_master) fds[1].events = POLLIN | (g_to_host.len ? POLLOUT : 0);
+    const struct timespec zero = {0, 0};
+    int ready = ppoll(fds, watch_master ? 2 : 1, &zero, NULL);
+    if (ready < 0 && errno != EINTR) {
       perror("hilswarm-simavr: ppoll");
       exit_code = 1;
       break;
     }
+    if (ready < 0) continue;  // EINTR
     if (watch_master) {
       check_host(fds[1].revents);
       if (!g_host_connected) next_hup_check_ns = now_ns + DISCONNECTED_RECHECK_NS;
@@ -631,13 +853,37 @@ int main(int argc, char **argv) {
     feed_avr();
     flush_to_host();
     if ((fds[0].revents & (POLLIN | POLLHUP | POLLERR)) && read_control()) break;
-    // Paced mode and no host bytes: sleep off the rest of the budget before running on.
-    if (opt.paced && sleep_ns > 0 && watch_master && !g_host_connected) {
-      struct timespec rest = {sleep_ns / 1000000000LL, sleep_ns % 1000000000LL};
-      struct pollfd in = {STDIN_FILENO, POLLIN, 0};
-      ppoll(&in, 1, &rest, NULL);
-      if ((in.revents & (POLLIN | POLLHUP | POLLERR)) && read_control()) break;
+
+    // 3. Paced: sleep until simulated time may run one step further, until the next byte
+    // leaves the wire or the next host byte is due in, or until the host or the control
+    // channel has something; run on at once if the simulation is a step or more behind.
+    // While bytes move, a step is shorter than a byte time, so a reply the firmware starts
+    // within a step still reaches the host when its first byte has left the wire.
+    if (!opt.paced) continue;
+    const uint64_t wall_cycles = cycles_at(monotonic_ns());
+    const uint64_t sim = sim_cycles();
+    const uint64_t lag = wall_cycles > sim ? wall_cycles - sim : 0;
+    const int active = g_to_avr.len > 0 || g_tx.len > 0 ||
+                       !uart_fifo_isempty(&g_uart->input) ||
+                       sim - g_last_byte_cycle < active_cycles;
+    const int64_t step_ns =
+        active ? (int64_t)(g_uart->cycles_per_byte * 900000000ULL / freq) : PACED_IDLE_STEP_NS;
+    int64_t sleep_ns = step_ns - (int64_t)(lag * 1000000000ULL / freq);
+    uint64_t next_event = UINT64_MAX;  // sim_cycles() of the next byte due to move
+    if (g_tx.len > 0) next_event = g_tx.due[g_tx.head] + g_cycle_offset;
+    if (g_to_avr.len > 0 && g_arrivals.ready[g_arrivals.head] < next_event) {
+      next_event = g_arrivals.ready[g_arrivals.head];
     }
+    if (next_event != UINT64_MAX) {
+      const int64_t until_event =
+          next_event > wall_cycles ? (int64_t)((next_event - wall_cycles) * 1000000000ULL / freq)
+                                   : 0;
+      if (until_event < sleep_ns) sleep_ns = until_event;
+    }
+    if (sleep_ns < PACED_MIN_SLEEP_NS) continue;
+    struct pollfd wait_fds[2] = {{STDIN_FILENO, POLLIN, 0}, {g_master, POLLIN, 0}};
+    const struct timespec ts = {0, sleep_ns};
+    ppoll(wait_fds, g_host_connected ? 2 : 1, &ts, NULL);  // EINTR: the loop checks g_stop
   }
 done:
   fflush(g_ctl);
