@@ -7,15 +7,17 @@
 // (see LICENSE and NOTICE beside this file).
 //
 // Design:
-// * One thread. The simulator runs in chunks of instructions; between chunks the harness polls
-//   the pty master and stdin (ppoll), and in --paced mode sleeps until the wall clock catches up
-//   with simulated time.
-// * Host -> AVR bytes are queued (never dropped) and pushed into simavr's UART receive FIFO only
-//   while the receiver is enabled and the FIFO has room; simavr then delivers them to the
-//   firmware at the configured baud rate (simulated time). The UART's XON IRQ refills the FIFO
-//   immediately when it drains.
-// * AVR -> host bytes are queued and written to the pty master; while no host has the pty open
-//   (POLLHUP on the master) they are discarded.
+// * One thread. The simulator runs in slices: --paced up to the wall clock (never ahead; steps
+//   shorter than a UART byte time while bytes move), --unpaced 4000 cycles at a time; between
+//   slices the harness polls the pty master and stdin, and --paced sleeps (ppoll, 1 us timer
+//   slack) until the next step or wire event or until input arrives.
+// * The wire is a real 8N1 line in simulated time (wire_byte_cycles(): 86.8 us per byte at
+//   115200): simavr's UART byte time is set to it. Host -> AVR bytes are queued (never dropped)
+//   with their arrival time and pushed into simavr's UART receive FIFO once simulated time has
+//   reached it, while the receiver is enabled and the FIFO has room; simavr then hands them to
+//   the firmware one byte time apart. AVR -> host bytes are delivered when their frame ends
+//   (UDR0 write + one byte time, serialised) and written to the pty at once; while no host has
+//   the pty open (POLLHUP on the master) they are discarded.
 // * PWM duty and servo pulse widths are read from the timer registers (simavr does not model
 //   Arduino's phase-correct PWM and misses OCR1x updates in Timer1 mode 14).
 
@@ -747,13 +749,13 @@ static int setup_avr(const options_t *o) {
 
 // ---------------------------------------------------------------- main loop
 
-
 int main(int argc, char **argv) {
   options_t opt;
   if (parse_options(argc, argv, &opt) != 0) return 2;
 
   // The control channel keeps the real stdout; anything else printing to stdout (libsimavr)
   // lands on stderr instead.
+  // (Before anything is printed on stderr: tracing makes it fully buffered.)
   int ctl_fd = dup(STDOUT_FILENO);
   if (ctl_fd < 0 || dup2(STDERR_FILENO, STDOUT_FILENO) < 0 || !(g_ctl = fdopen(ctl_fd, "w"))) {
     perror("hilswarm-simavr: stdout");
@@ -769,13 +771,13 @@ int main(int argc, char **argv) {
   sigaction(SIGINT, &sa, NULL);
   signal(SIGPIPE, SIG_IGN);
 
-  if (setup_avr(&opt) != 0) return 1;
   if (getenv("HILSWARM_SIMAVR_TRACE")) {
     static char trace_buffer[1 << 16];  // buffered: tracing must not slow the bridge much
     setvbuf(stderr, trace_buffer, _IOFBF, sizeof(trace_buffer));
     g_trace = stderr;
-    avr_cycle_timer_register(g_avr, 64, trace_rx_reads, NULL);
   }
+  if (setup_avr(&opt) != 0) return 1;
+  if (g_trace) avr_cycle_timer_register(g_avr, 64, trace_rx_reads, NULL);
   char slave[128];
   g_master = open_pty(slave, sizeof(slave));
   if (g_master < 0) {
@@ -831,8 +833,8 @@ int main(int argc, char **argv) {
     tx_check_reset();
     sync_wire_timing();
 
-    // 2. Exchange bytes and commands at the current simulated time (host bytes enter the wire
-    // now, not at the start of the slice).
+    // 2. Exchange bytes and commands at the current simulated time (host bytes read now are
+    // stamped with their arrival time; commands see the AVR as of now).
     const int64_t now_ns = monotonic_ns();
     struct pollfd fds[2] = {{STDIN_FILENO, POLLIN, 0}, {g_master, 0, 0}};
     const int watch_master = g_host_connected || now_ns >= next_hup_check_ns;
