@@ -70,7 +70,7 @@ enum { BIT_COMA1 = 7, BIT_COMB1 = 5, BIT_RXEN0 = 4, BIT_U2X0 = 1 };
 #define PACED_ACTIVE_NS 5000000LL           // --paced: the link counts as active this long
                                             // after a byte moved (then: 0.9 byte time steps)
 #define PACED_MIN_SLEEP_NS 2000LL           // --paced: shorter waits are run through
-#define PACED_MAX_RUN_CYCLES 16000u         // --paced catch-up: poll at least every 1 ms (sim)
+#define PACED_MAX_RUN_CYCLES 1600u          // --paced catch-up: poll every 100 us (sim)
 #define PACED_MAX_LAG_NS 50000000LL         // --paced: a backlog beyond 50 ms is dropped
 #define DISCONNECTED_RECHECK_NS 5000000LL   // poll a disconnected pty every 5 ms (wall)
 #define QUEUE_LIMIT (1u << 20)              // 1 MiB per direction
