@@ -9,6 +9,9 @@ one checked round trip (docs/protocol.md). Transports measured:
 * ``simavr unpaced`` — the same, simulated time as fast as the host allows (functional tests).
 * ``pty+SimBoard`` / ``socket+SimBoard`` — SerialBoard -> WireServer -> SimBoard (no UART time).
 
+Each simavr line is followed by the CPU use of the harness process and of this (host) process
+[% of one core] over the run (a paced harness must not starve the host on a 2-core machine).
+
     python benchmarks/link_throughput.py [--short] [--seconds S]
 """
 
