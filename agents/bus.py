@@ -337,6 +337,57 @@ def decode_report(payload: bytes | bytearray | memoryview | None) -> TickReport:
     return TickReport(AgentTiming(compute_s, actuate_s, sense_s, skipped), u, x_hat)
 
 
+def vector_header(payload: bytes | bytearray | memoryview) -> tuple[int, float]:
+    """``(k, t)`` of an :func:`encode_vector` message without decoding its values."""
+    if len(payload) < _VECTOR_HEADER.size:
+        raise BusMessageError(f"vector message of {len(payload)} bytes: expected at least 16")
+    k, t = _VECTOR_HEADER.unpack_from(payload)
+    return k, t
+
+
+def unpack_vector(payload: bytes | bytearray | memoryview) -> tuple[int, float, tuple[float, ...]]:
+    """Like :func:`decode_vector`, but the values as a tuple of floats (cheap for short vectors)."""
+    size = len(payload)
+    if size < _VECTOR_HEADER.size or (size - _VECTOR_HEADER.size) % 8:
+        raise BusMessageError(
+            f"vector message of {size} bytes: expected 16 header bytes plus 8 per value"
+        )
+    k, t = _VECTOR_HEADER.unpack_from(payload)
+    values = _floats((size - _VECTOR_HEADER.size) // 8).unpack_from(payload, _VECTOR_HEADER.size)
+    return k, t, values
+
+
+def unpack_report(
+    payload: bytes | bytearray | memoryview | None,
+) -> tuple[AgentTiming, tuple[float, ...], tuple[float, ...]]:
+    """Like :func:`decode_report`, but ``u`` and ``x_hat`` as tuples of floats."""
+    if not payload:
+        return AgentTiming(), (), ()
+    size = len(payload)
+    if size < _REPORT_HEADER.size:
+        raise BusMessageError(
+            f"tick report of {size} bytes, expected at least {_REPORT_HEADER.size}"
+        )
+    compute_s, actuate_s, sense_s, skipped, n_u, n_x = _REPORT_HEADER.unpack_from(payload)
+    if size != _REPORT_HEADER.size + 8 * (n_u + n_x):
+        raise BusMessageError(f"tick report of {size} bytes does not hold {n_u} + {n_x} values")
+    offset = _REPORT_HEADER.size
+    u = _floats(n_u).unpack_from(payload, offset)
+    x_hat = _floats(n_x).unpack_from(payload, offset + 8 * n_u)
+    return AgentTiming(compute_s, actuate_s, sense_s, skipped), u, x_hat
+
+
+_FLOATS: dict[int, struct.Struct] = {}
+
+
+def _floats(n: int) -> struct.Struct:
+    """A cached ``struct.Struct`` of ``n`` little-endian float64."""
+    layout = _FLOATS.get(n)
+    if layout is None:
+        layout = _FLOATS[n] = struct.Struct(f"<{n}d")
+    return layout
+
+
 class ControlCommand(enum.Enum):
     """Swarm-wide commands published on the ``control`` key."""
 

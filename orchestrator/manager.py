@@ -33,13 +33,23 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.record_stream import (
+    ORCHESTRATOR,
+    FrameRecorder,
+    RecordSink,
+    event_frame,
+    status_frame,
+    tick_frame,
+    vector_frame,
+    y_frame,
+)
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
 
@@ -51,9 +61,12 @@ DEFAULT_START_TIMEOUT_S = 60.0
 DEFAULT_ANSWER_TIMEOUT_S = 5.0
 #: Default bound on waiting for agents to stop after the stop command [s].
 DEFAULT_STOP_TIMEOUT_S = 5.0
+#: Default period of handing records to the recorder [s].
+DEFAULT_FLUSH_PERIOD_S = 0.02
 
-# Queue item kinds (small ints: compared on every message).
-_Y, _ALIVE, _GONE, _CONTROL, _STOP = range(5)
+# Event kinds of the ticking thread's queue (rare: not one per message).
+_ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE = range(6)
+_K = struct.Struct("<q")
 
 
 class ManagerError(Exception):
@@ -123,170 +136,68 @@ class RunSummary:
         return "\n".join(lines)
 
 
-class _RecordPump:
-    """Writes to the recorder on its own thread, so recording never delays a tick."""
+class _Account(NamedTuple):
+    """A closed tick: index, scheduled/sent/done times [s, manager clock], late agents, and
+    per agent its answer time after the send [s] (NaN: none; ``None``: not recorded)."""
 
-    def __init__(self, recorder: Recorder | None, keys: bus.BusKeys, dt: float) -> None:
-        self.recorder = recorder
-        self.keys = keys
-        self.dt = dt
-        self.queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
-        self.agent_states: dict[str, str] = {}
-        self.stopped_agents: set[str] = set()
-        self._thread = threading.Thread(target=self._run, name="hilswarm-recorder", daemon=True)
-        self.errors = 0
-
-    def start(self) -> None:
-        self._thread.start()
-
-    def on_sample(self, sample: zenoh.Sample, log_time_ns: int) -> None:
-        """Bus callback (u, x_hat, status, telemetry): enqueue only."""
-        self.queue.put((str(sample.key_expr), sample.payload.to_bytes(), log_time_ns))
-
-    def _run(self) -> None:
-        get = self.queue.get
-        while True:
-            item = get()
-            if item is None:
-                return
-            try:
-                self._write(*item)
-            except Exception:  # a bad message must not stop the recording of the others
-                self.errors += 1
-                logger.exception("cannot record %s", item[0])
-
-    def _write(self, key: str, payload: Any, log_time_ns: int) -> None:
-        recorder = self.recorder
-        if key == "#ticks":
-            if recorder is not None:
-                k, t, timings = payload
-                recorder.write_ticks(k=k, t=t, log_time_ns=log_time_ns, timings=timings)
-            return
-        if key == "#y":
-            if recorder is not None:
-                name, y, report = payload
-                k, t, values = bus.decode_vector(y)
-                recorder.write_vector(
-                    f"/{name}/y", k=k, t=t, values=values, log_time_ns=log_time_ns
-                )
-                if report.u.size:
-                    t_u = t - self.dt
-                    recorder.write_vector(
-                        f"/{name}/u", k=k, t=t_u, values=report.u, log_time_ns=log_time_ns
-                    )
-                    if report.x_hat.size:
-                        recorder.write_vector(
-                            f"/{name}/x_hat",
-                            k=k,
-                            t=t_u,
-                            values=report.x_hat,
-                            log_time_ns=log_time_ns,
-                        )
-            return
-        if key == "#status":
-            name, state, k, t, detail = payload
-            if recorder is not None:
-                recorder.write_status(
-                    name, state=state, k=k, t=t, log_time_ns=log_time_ns, detail=detail
-                )
-            return
-        name, leaf = self.keys.parse_agent_key(key)
-        if leaf == "status":
-            message = bus.decode_json(payload)
-            state = str(message.get("state", ""))
-            self.agent_states[name] = state
-            if state == "stopped":
-                self.stopped_agents.add(name)
-            if recorder is not None:
-                detail = str(message.get("detail", ""))
-                if message.get("kind") == "set":
-                    detail = f"{detail} (ok={message.get('ok')})"
-                recorder.write_status(
-                    name,
-                    state=state,
-                    k=int(message.get("k", 0)),
-                    t=float(message.get("t", 0.0)),
-                    log_time_ns=log_time_ns,
-                    detail=detail,
-                )
-            return
-        if recorder is None:
-            return
-        k, t, values = bus.decode_vector(payload)
-        recorder.write_vector(f"/{name}/{leaf}", k=k, t=t, values=values, log_time_ns=log_time_ns)
-
-    def put_outputs(self, name: str, y: bytes, report: bus.TickReport, log_time_ns: int) -> None:
-        """Record an agent's y_k and the u_k, x_hat_k of its report."""
-        if self.recorder is not None:
-            self.queue.put(("#y", (name, y, report), log_time_ns))
-
-    def put_ticks(self, k: int, t: float, timings: dict[str, Any], log_time_ns: int) -> None:
-        self.queue.put(("#ticks", (k, t, timings), log_time_ns))
-
-    def put_status(
-        self, name: str, state: str, *, k: int, detail: str, log_ns: int, dt: float
-    ) -> None:
-        self.queue.put(("#status", (name, state, k, k * dt, detail), log_ns))
-
-    def close(self, timeout_s: float = 30.0) -> None:
-        if self._thread.is_alive():
-            self.queue.put(None)
-            self._thread.join(timeout_s)
+    k: int
+    scheduled: float
+    sent: float
+    done: float
+    late: list[int]
+    answers: np.ndarray | None
 
 
-_K = struct.Struct("<q")
+class _Tick:
+    """The tick in flight, shared by the bus callbacks and the ticking thread (under a lock).
 
-
-class _TickState:
-    """Answers to the tick in flight (arrays indexed like the experiment's agents)."""
+    Arrays are indexed like the experiment's agents and preallocated: recording an answer is
+    a few element stores.
+    """
 
     def __init__(self, n: int) -> None:
-        self.k = 0
+        self.k = -1
         self.scheduled = 0.0
         self.sent = 0.0
         self.last_progress = 0.0
         self.expected = n
         self.count = 0
         self.arrived = np.zeros(n, dtype=bool)
-        self.answer_s = np.full(n, np.nan)
-        self.timing = np.full((n, 3), np.nan)  # sense, compute, actuate [s]
-        self.skipped = np.zeros(n, dtype=np.int64)
+        self.answered_at = np.full(n, np.nan)  # manager clock [s]
+        self.lost = np.zeros(n, dtype=bool)
 
     def begin(self, k: int, scheduled: float, sent: float) -> None:
-        """Tick ``k`` scheduled at ``scheduled`` was sent at ``sent`` [s, manager clock]."""
+        """Tick ``k``, scheduled at ``scheduled``, is sent at ``sent`` [s, manager clock]."""
         self.k, self.scheduled, self.sent, self.last_progress = k, scheduled, sent, sent
         self.count = 0
         self.arrived[:] = False
-        self.answer_s[:] = np.nan
-        self.timing[:] = np.nan
-        self.skipped[:] = 0
+        self.answered_at[:] = np.nan
 
-    def answer(self, i: int, received: float, timing: bus.AgentTiming, *, counted: bool) -> None:
-        """Agent ``i``'s y_k arrived at ``received`` [s, manager clock]."""
-        self.arrived[i] = True
-        self.answer_s[i] = received - self.sent
-        self.timing[i] = (timing.sense_s, timing.compute_s, timing.actuate_s)
-        self.skipped[i] = timing.skipped
-        if counted:
-            self.count += 1
-            self.last_progress = received
-
-    def unanswered(self, lost: set[int]) -> list[int]:
+    def unanswered(self) -> list[int]:
         """Agents (not lost) whose y_k is not in."""
-        return [i for i in np.flatnonzero(~self.arrived).tolist() if i not in lost]
+        return np.flatnonzero(~(self.arrived | self.lost)).tolist()
 
-    def recount(self, n: int, lost: set[int]) -> None:
+    def recount(self) -> None:
         """Recompute what is expected after agents were lost."""
-        self.expected = n - len(lost)
-        self.count = sum(1 for i in np.flatnonzero(self.arrived).tolist() if i not in lost)
+        self.expected = int((~self.lost).sum())
+        self.count = int((self.arrived & ~self.lost).sum())
 
 
 class InstanceManager:
     """Schedules ticks for the agents of ``experiment`` and records the run.
 
+    Per tick the manager's own work is small and allocation-light: each agent's ``y`` is
+    accounted in the bus callback that receives it (its tick index read from the first 8
+    bytes; nothing else decoded), the tick's account is kept in preallocated arrays, and what
+    is recorded goes out as raw frames, in batches, to ``recorder`` (usually the recorder
+    process, see :mod:`hilswarm.orchestrator.recorder_process`), which does the decoding and
+    JSON encoding on its own core.
+
     Args:
         experiment: the loaded experiment (its ``mode`` and ``n_ticks`` are used).
-        recorder: where to record (``None``: nothing is recorded).
+        recorder: where the record stream goes (a :class:`RecordSink`, or a
+            :class:`~hilswarm.orchestrator.recorder.Recorder` written in this process);
+            ``None``: nothing is recorded.
         listen: endpoints of the embedded router session (``tcp/127.0.0.1:<port>``);
             ignored when ``connect`` is given.
         connect: endpoints of an existing Zenoh router to join as a client.
@@ -296,13 +207,15 @@ class InstanceManager:
         stop_timeout_s: bound on waiting for agents to stop.
         display: live status display (``None``: none).
         record_ticks: write ``/orchestrator/ticks`` (one message per tick).
+        flush_period_s: records are handed to ``recorder`` at most this long after they came
+            [s] (a killed orchestrator loses at most this much).
     """
 
     def __init__(
         self,
         experiment: Experiment,
         *,
-        recorder: Recorder | None,
+        recorder: RecordSink | Recorder | None,
         listen: Sequence[str] = (),
         connect: Sequence[str] = (),
         clock: Callable[[], float] = time.perf_counter,
@@ -311,12 +224,14 @@ class InstanceManager:
         stop_timeout_s: float = DEFAULT_STOP_TIMEOUT_S,
         display: StatusDisplay | None = None,
         record_ticks: bool = True,
+        flush_period_s: float = DEFAULT_FLUSH_PERIOD_S,
     ) -> None:
         if not listen and not connect:
             raise ManagerError("the instance manager needs endpoints to listen on or connect to")
         self.experiment = experiment
         self.keys = bus.BusKeys(experiment.name)
         self.names: tuple[str, ...] = experiment.agent_names
+        self._index = {name: i for i, name in enumerate(self.names)}
         self.n = len(self.names)
         self.dt = experiment.dt
         self.mode = experiment.mode
@@ -327,9 +242,19 @@ class InstanceManager:
         self.answer_timeout_s = answer_timeout_s
         self.stop_timeout_s = stop_timeout_s
         self._display = display
-        self._record_ticks = record_ticks
-        self._queue: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
-        self._pump = _RecordPump(recorder, self.keys, experiment.dt)
+        if isinstance(recorder, Recorder):
+            recorder = FrameRecorder(recorder, experiment)
+        self._sink: RecordSink | None = recorder
+        self._record_ticks = record_ticks and recorder is not None
+        self._flush_period_s = flush_period_s
+        self._next_flush = 0.0
+        # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
+        self._lock = threading.Lock()
+        self._tick = _Tick(self.n)
+        self._frames: list[bytes] = []
+        self.agent_states: dict[str, str] = {}
+        # Rare events for the ticking thread: liveliness, control, stop, safe, lockstep done.
+        self._events: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         self._session: zenoh.Session | None = None
         self._entities: list[Any] = []
         self.alive: set[str] = set()
@@ -342,19 +267,20 @@ class InstanceManager:
         self.summary._dt = self.dt
         self.summary.late = dict.fromkeys(self.names, 0)
         self.summary.planned_ticks = experiment.n_ticks
+        self._completion = np.full(max(experiment.n_ticks, 1), np.nan)
         self._clock_origin = clock()
 
     # -- bus ---------------------------------------------------------------------------------
 
     def open(self) -> None:
-        """Open the bus session and declare everything; start the recorder thread."""
+        """Open the bus session and declare everything."""
         if self._connect:
             config = bus.client_config(self._connect)
         else:
             config = bus.listen_config(self._listen)
         session = bus.open_session(config)
         self._session = session
-        keys, put, clock = self.keys, self._queue.put, self._clock
+        keys = self.keys
         self._tick_pub = session.declare_publisher(keys.tick, **bus.TICK_PATH_QOS)
         self._control_pub = session.declare_publisher(keys.control, **bus.TICK_PATH_QOS)
         self._status_pub = session.declare_publisher(keys.manager_status, **bus.DATA_QOS)
@@ -363,29 +289,23 @@ class InstanceManager:
             entities.append(
                 session.declare_subscriber(
                     keys.y(name),
-                    zenoh.handlers.Callback(
-                        lambda s, i=i: put(
-                            (
-                                _Y,
-                                i,
-                                s.payload.to_bytes(),
-                                s.attachment.to_bytes() if s.attachment else b"",
-                                clock(),
-                            )
-                        ),
-                        indirect=False,
-                    ),
+                    zenoh.handlers.Callback(self._y_callback(i), indirect=False),
                 )
             )
-        pump, wall_ns = self._pump, self._wall_ns
         # u and x_hat arrive inside the agents' y reports; status and telemetry on their keys.
-        for leaf in ("status", "telemetry/**"):
-            entities.append(
-                session.declare_subscriber(
-                    f"{keys.prefix}/agent/*/{leaf}",
-                    zenoh.handlers.Callback(lambda s: pump.on_sample(s, wall_ns()), indirect=False),
-                )
+        entities.append(
+            session.declare_subscriber(
+                f"{keys.prefix}/agent/*/status",
+                zenoh.handlers.Callback(self._on_status, indirect=False),
             )
+        )
+        entities.append(
+            session.declare_subscriber(
+                f"{keys.prefix}/agent/*/telemetry/**",
+                zenoh.handlers.Callback(self._on_vector, indirect=False),
+            )
+        )
+        put = self._events.put
         entities.append(
             session.declare_subscriber(
                 keys.control,
@@ -403,26 +323,115 @@ class InstanceManager:
         )
         entities.append(session.liveliness().declare_token(keys.alive(MANAGER_NAME)))
         self._entities = entities
-        self._pump.start()
         self._publish_state("waiting", "waiting for agents")
+
+    def _y_callback(self, i: int) -> Callable[[zenoh.Sample], None]:
+        """The callback of agent ``i``'s y key (runs on a Zenoh thread: keep it short)."""
+        clock, wall_ns, lock, tick = self._clock, self._wall_ns, self._lock, self._tick
+        keep, record = self._frames.append, self._sink is not None
+        lockstep = self.mode != "realtime"
+        put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
+
+        def on_y(sample: zenoh.Sample) -> None:
+            received = clock()
+            payload = sample.payload.to_bytes()
+            if len(payload) < header:
+                logger.warning("agent %s sent a y of %d bytes", self.names[i], len(payload))
+                return
+            k = unpack_k(payload)[0]
+            with lock:
+                if record:
+                    attachment = sample.attachment
+                    keep(
+                        y_frame(
+                            i,
+                            wall_ns(),
+                            payload,
+                            attachment.to_bytes() if attachment is not None else b"",
+                        )
+                    )
+                if k != tick.k or tick.arrived[i]:
+                    return  # a late answer (recorded) or a duplicate
+                tick.arrived[i] = True
+                tick.answered_at[i] = received
+                if tick.lost[i]:
+                    return
+                tick.count += 1
+                tick.last_progress = received
+                if lockstep and tick.count >= tick.expected:
+                    put((_COMPLETE, k))
+
+        return on_y
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        """An agent's status message (rare): its state for the display and the policies."""
+        payload = sample.payload.to_bytes()
+        try:
+            name, _ = self.keys.parse_agent_key(str(sample.key_expr))
+            i = self._index[name]
+            message = bus.decode_json(payload)
+        except (bus.BusKeyError, bus.BusMessageError, KeyError) as exc:
+            logger.warning("status message not understood: %s", exc)
+            return
+        state = str(message.get("state", ""))
+        with self._lock:
+            if self._sink is not None:
+                self._frames.append(status_frame(i, self._wall_ns(), payload))
+            self.agent_states[name] = state
+        if state == "safe":
+            self._events.put((_SAFE, name, str(message.get("detail", ""))))
+
+    def _on_vector(self, sample: zenoh.Sample) -> None:
+        """A vector on another agent key (telemetry): recorded as it came."""
+        if self._sink is None:
+            return
+        try:
+            name, leaf = self.keys.parse_agent_key(str(sample.key_expr))
+            i = self._index[name]
+        except (bus.BusKeyError, KeyError) as exc:
+            logger.warning("vector message not understood: %s", exc)
+            return
+        frame = vector_frame(i, self._wall_ns(), leaf, sample.payload.to_bytes())
+        with self._lock:
+            self._frames.append(frame)
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         try:
             name = self.keys.parse_alive_key(str(sample.key_expr))
         except bus.BusKeyError:
             return
-        if name == MANAGER_NAME or name not in self.names:
+        if name == MANAGER_NAME or name not in self._index:
             return
         kind = _ALIVE if sample.kind == zenoh.SampleKind.PUT else _GONE
-        self._queue.put((kind, name, self._clock()))
+        self._events.put((kind, name, self._clock()))
 
     def _publish_state(self, state: str, detail: str = "") -> None:
         if self._session is not None:
             self._status_pub.put(bus.encode_json({"state": state, "detail": detail}))
 
+    def _record_event(self, agent: str, state: str, *, k: int, detail: str) -> None:
+        if self._sink is None:
+            return
+        frame = event_frame(self._wall_ns(), agent, state, k=k, t=k * self.dt, detail=detail)
+        with self._lock:
+            self._frames.append(frame)
+
+    def _flush_records(self) -> None:
+        """Hand the records gathered so far to the sink (one write)."""
+        sink = self._sink
+        if sink is None:
+            return
+        with self._lock:
+            frames = self._frames
+            if not frames:
+                return
+            data = b"".join(frames)
+            frames.clear()
+        sink.write(data)
+
     def request_stop(self, reason: str) -> None:
         """Ask the run to stop (thread-safe, signal-safe): agents to safe, then stopped."""
-        self._queue.put((_STOP, reason))
+        self._events.put((_STOP, reason))
 
     def estop(self, reason: str = "e-stop") -> None:
         """Swarm-wide e-stop: every agent's outputs to safe values now, then the run stops."""
@@ -452,8 +461,9 @@ class InstanceManager:
                 )
             if check is not None:
                 check()
+            self._flush_records()
             try:
-                item = self._queue.get(timeout=min(remaining, 0.1))
+                item = self._events.get(timeout=min(remaining, 0.1))
             except queue.Empty:
                 continue
             kind = item[0]
@@ -476,16 +486,17 @@ class InstanceManager:
         """Send every tick of the experiment, then stop the agents. Returns the summary."""
         n_ticks = self.experiment.n_ticks
         realtime = self.mode == "realtime"
-        clock, get, dt = self._clock, self._queue.get, self.dt
-        summary = self.summary
-        tick = _TickState(self.n)
-        tick.expected = self.n - len(self.lost)
+        clock, get, dt = self._clock, self._events.get, self.dt
+        tick = self._tick
+        with self._lock:
+            tick.recount()
         self._publish_state("running")
         start = clock()
         t0 = start + (min(0.05, 5 * dt) if realtime else 0.0)
         if realtime:
             self._wait_until(t0)
-        tick.begin(0, t0, self._send_tick(0, ()))
+        if not self._stop_reason:
+            self._next_tick(0, t0, ())
         next_display = start + 0.5
         while not self._stop_reason:
             now = clock()
@@ -493,78 +504,135 @@ class InstanceManager:
                 self._reanchor = False
                 t0 = now - tick.k * dt
             due = t0 + (tick.k + 1) * dt if realtime else math.inf
-            wait_until = now + 0.1 if self._paused or not realtime else due
+            if self._paused:
+                wait_until = now + 0.1
+            elif realtime:
+                wait_until = due
+            else:
+                wait_until = min(now + 0.1, tick.last_progress + self.answer_timeout_s)
             if now >= next_display:
                 self._show(tick.k, start, now)
                 next_display = now + 0.5
+            if now >= self._next_flush:
+                self._flush_records()
+                self._next_flush = now + self._flush_period_s
             try:
-                item = get(timeout=max(0.0, wait_until - now))
+                item = get(timeout=max(0.0, wait_until - clock()))
             except queue.Empty:
                 item = None
             if item is not None:
-                self._handle(item, tick)
+                self._handle(item)
                 if self._stop_reason:
                     break
-            now = clock()
-            complete = tick.count >= tick.expected
             if self._paused:
                 continue
-            if not realtime and complete:
-                self._account(tick, tick.last_progress if tick.expected else now, ())
-                summary.ticks += 1
-                if tick.k + 1 >= n_ticks:
-                    self._stop_reason = "completed"
-                    break
-                scheduled = clock()
-                tick.begin(tick.k + 1, scheduled, self._send_tick(tick.k + 1, sorted(self.lost)))
-            elif realtime and now >= due:
-                late = [] if complete else tick.unanswered(self.lost)
-                self._account(tick, tick.last_progress if complete else math.nan, late)
+            now = clock()
+            if realtime:
+                if now < due:
+                    continue
+                with self._lock:
+                    complete = tick.count >= tick.expected
+                    late = [] if complete else tick.unanswered()
+                    account = self._close_tick(late, complete)
+                    k = tick.k + 1
+                    if k < n_ticks:
+                        missing = sorted(set(late) | self.lost)
+                        tick.begin(k, t0 + k * dt, clock())
+                if k < n_ticks:
+                    self._send_tick(k, missing)
+                self._account(account)
                 for j in late:
-                    summary.late[self.names[j]] += 1
+                    self.summary.late[self.names[j]] += 1
                 if late:
-                    summary.late_ticks += 1
+                    self.summary.late_ticks += 1
                 else:
-                    summary.ticks += 1
-                if tick.k + 1 >= n_ticks:
+                    self.summary.ticks += 1
+                if k >= n_ticks:
                     self._stop_reason = "completed"
-                    break
-                k = tick.k + 1
-                tick.begin(k, t0 + k * dt, self._send_tick(k, sorted(set(late) | self.lost)))
-            elif not realtime and now - tick.last_progress > self.answer_timeout_s:
-                for j in tick.unanswered(self.lost):
-                    self._on_agent_gone(
-                        self.names[j], tick.k, f"no answer within {self.answer_timeout_s} s"
-                    )
-                tick.recount(self.n, self.lost)
-                tick.last_progress = now
+            else:
+                with self._lock:
+                    complete = tick.count >= tick.expected
+                    if complete:
+                        account = self._close_tick([], True)
+                        k = tick.k + 1
+                        if k < n_ticks:
+                            now = clock()
+                            tick.begin(k, now, now)
+                if complete:
+                    if k < n_ticks:
+                        self._send_tick(k, sorted(self.lost))
+                    self._account(account)
+                    self.summary.ticks += 1
+                    if k >= n_ticks:
+                        self._stop_reason = "completed"
+                elif now - tick.last_progress > self.answer_timeout_s:
+                    for j in tick.unanswered():
+                        self._on_agent_gone(
+                            self.names[j], tick.k, f"no answer within {self.answer_timeout_s} s"
+                        )
+                    with self._lock:
+                        tick.last_progress = now
+        summary = self.summary
         summary.wall_s = clock() - start
         summary.stop_reason = self._stop_reason
+        summary.completion_s = self._completion[: summary.ticks + summary.late_ticks][
+            np.isfinite(self._completion[: summary.ticks + summary.late_ticks])
+        ].tolist()
         self._show(tick.k, start, clock())
-        self._stop_agents()
+        self._stop_agents(tick.k)
         return summary
 
-    def _handle(self, item: tuple[Any, ...], tick: _TickState) -> None:
-        """One queue item while ticking."""
+    def _next_tick(self, k: int, scheduled: float, missing: Sequence[int]) -> None:
+        with self._lock:
+            self._tick.begin(k, scheduled, self._clock())
+        self._send_tick(k, missing)
+
+    def _close_tick(self, late: list[int], complete: bool) -> _Account:
+        """The account of the tick in flight (call under the lock, before ``begin``)."""
+        tick = self._tick
+        done = tick.last_progress if complete else math.nan
+        if complete and tick.expected == 0:
+            done = self._clock()
+        answers = tick.answered_at - tick.sent if self._record_ticks else None
+        return _Account(tick.k, tick.scheduled, tick.sent, done, late, answers)
+
+    def _account(self, account: _Account) -> None:
+        """Record the timing account of a tick (times on the manager clock [s])."""
+        k, scheduled = account.k, account.scheduled
+        completion = account.done - scheduled
+        if k < self._completion.size:
+            self._completion[k] = completion
+        if account.answers is None:
+            return
+        frame = tick_frame(
+            k,
+            self._wall_ns(),
+            scheduled_s=scheduled - self._clock_origin,
+            send_delay_s=account.sent - scheduled,
+            completion_s=completion,
+            late=account.late,
+            missing=sorted(self.lost),
+            answer_s=account.answers,
+        )
+        with self._lock:
+            self._frames.append(frame)
+
+    def _handle(self, item: tuple[Any, ...]) -> None:
+        """One event while ticking."""
         kind = item[0]
-        if kind == _Y:
-            _, i, payload, attachment, received = item
-            report = bus.decode_report(attachment)
-            self._pump.put_outputs(self.names[i], payload, report, self._wall_ns())
-            k_y = _K.unpack_from(payload)[0]
-            if k_y == tick.k and not tick.arrived[i]:
-                tick.answer(i, received, report.timing, counted=i not in self.lost)
-            elif k_y < tick.k:
-                logger.debug("late answer of %s for tick %d", self.names[i], k_y)
-        elif kind == _GONE:
-            self._on_agent_gone(item[1], tick.k, "liveliness token lost (killed or hung)")
-            tick.recount(self.n, self.lost)
+        k = self._tick.k
+        if kind == _COMPLETE:
+            return  # the loop closes the tick
+        if kind == _GONE:
+            self._on_agent_gone(item[1], k, "liveliness token lost (killed or hung)")
         elif kind == _ALIVE:
             self.alive.add(item[1])
         elif kind == _CONTROL:
-            self._on_control(item[1], tick.k)
+            self._on_control(item[1], k)
         elif kind == _STOP:
             self._stop_reason = str(item[1])
+        elif kind == _SAFE:
+            self._on_agent_safe(item[1], item[2], k)
 
     def _wait_until(self, when: float) -> None:
         """Block until ``when`` on the manager clock, still handling stop requests."""
@@ -573,7 +641,7 @@ class InstanceManager:
             if remaining <= 0:
                 return
             try:
-                item = self._queue.get(timeout=remaining)
+                item = self._events.get(timeout=remaining)
             except queue.Empty:
                 return
             if item[0] == _STOP:
@@ -582,36 +650,8 @@ class InstanceManager:
             if item[0] == _ALIVE:
                 self.alive.add(item[1])
 
-    def _send_tick(self, k: int, missing: Sequence[int]) -> float:
-        sent = self._clock()
+    def _send_tick(self, k: int, missing: Sequence[int]) -> None:
         self._tick_pub.put(bus.encode_tick(bus.TickMessage(k, k * self.dt, tuple(missing))))
-        return sent
-
-    def _account(self, tick: _TickState, done: float, late: Sequence[int]) -> None:
-        """Record the timing account of ``tick`` (times on the manager clock [s])."""
-        if not math.isnan(done):
-            self.summary.completion_s.append(done - tick.scheduled)
-        if not self._record_ticks or self._pump.recorder is None:
-            return
-        names = self.names
-        agents = {}
-        for i in np.flatnonzero(tick.arrived):
-            agents[names[i]] = {
-                "answer_s": float(tick.answer_s[i]),
-                "sense_s": float(tick.timing[i, 0]),
-                "compute_s": float(tick.timing[i, 1]),
-                "actuate_s": float(tick.timing[i, 2]),
-                "skipped": int(tick.skipped[i]),
-            }
-        timings = {
-            "scheduled_s": tick.scheduled - self._clock_origin,
-            "send_delay_s": tick.sent - tick.scheduled,
-            "completion_s": None if math.isnan(done) else done - tick.scheduled,
-            "late": [names[i] for i in late],
-            "missing": [names[i] for i in sorted(self.lost)],
-            "agents": agents,
-        }
-        self._pump.put_ticks(tick.k, tick.k * self.dt, timings, self._wall_ns())
 
     def _on_control(self, payload: bytes, k: int) -> None:
         try:
@@ -623,9 +663,7 @@ class InstanceManager:
             self._stop_reason = f"stop requested{': ' + reason if reason else ''}"
         elif command is bus.ControlCommand.ESTOP:
             self._estop_tick = k
-            self._pump.put_status(
-                "orchestrator", "estop", k=k, detail=reason, log_ns=self._wall_ns(), dt=self.dt
-            )
+            self._record_event(ORCHESTRATOR, "estop", k=k, detail=reason)
             self._stop_reason = f"e-stop at tick {k}{': ' + reason if reason else ''}"
         elif command is bus.ControlCommand.PAUSE:
             self._paused = True
@@ -635,17 +673,29 @@ class InstanceManager:
             self._reanchor = True
             self._publish_state("running", reason)
 
+    def _on_agent_safe(self, name: str, detail: str, k: int) -> None:
+        """An agent reported state ``safe`` while ticking: apply ``on_agent_safe``."""
+        if self.experiment.on_agent_safe != "stop" or self._stop_reason:
+            return
+        self.summary.failed = True
+        self._stop_reason = f"agent {name} entered safe mode ({detail}); on_agent_safe = stop"
+        if self._display is not None:
+            self._display.log(f"agent {name} entered safe mode at tick {k}: {detail}")
+
     def _on_agent_gone(self, name: str, k: int, reason: str) -> None:
         self.alive.discard(name)
-        i = self.names.index(name)
+        i = self._index[name]
         if i in self.lost:
             return
         self.lost.add(i)
+        with self._lock:
+            self._tick.lost[i] = True
+            self._tick.recount()
         self.summary.lost.append(name)
         logger.warning("agent %s lost at tick %d: %s", name, k, reason)
         if self._display is not None:
             self._display.log(f"agent {name} lost at tick {k}: {reason}")
-        self._pump.put_status(name, "lost", k=k, detail=reason, log_ns=self._wall_ns(), dt=self.dt)
+        self._record_event(name, "lost", k=k, detail=reason)
         if self.experiment.on_agent_loss == "stop":
             self.summary.failed = True
             self._stop_reason = f"agent {name} lost ({reason}); on_agent_loss = stop"
@@ -655,12 +705,14 @@ class InstanceManager:
 
     # -- stopping ----------------------------------------------------------------------------
 
-    def _stop_agents(self) -> None:
+    def _stop_agents(self, k: int) -> None:
         """Every agent to safe mode and stopped; wait (bounded) for their tokens to go."""
         self._publish_state("stopping", self._stop_reason)
+        self._record_event(ORCHESTRATOR, "stopping", k=k, detail=self._stop_reason)
         self._control_pub.put(bus.encode_control(bus.ControlCommand.STOP, reason=self._stop_reason))
         deadline = self._clock() + self.stop_timeout_s
         while self.alive:
+            self._flush_records()
             remaining = deadline - self._clock()
             if remaining <= 0:
                 logger.warning(
@@ -670,19 +722,19 @@ class InstanceManager:
                 )
                 break
             try:
-                item = self._queue.get(timeout=remaining)
+                item = self._events.get(timeout=min(remaining, self._flush_period_s * 5))
             except queue.Empty:
-                break
+                continue
             if item[0] == _GONE:
                 self.alive.discard(item[1])
-            elif item[0] == _Y:
-                report = bus.decode_report(item[3])
-                self._pump.put_outputs(self.names[item[1]], item[2], report, self._wall_ns())
+        self._flush_records()
 
     def _show(self, k: int, start: float, now: float) -> None:
         if self._display is None:
             return
         elapsed = max(now - start, 1e-9)
+        with self._lock:
+            states = dict(self.agent_states)
         self._display.update(
             StatusSnapshot(
                 experiment=self.experiment.name,
@@ -691,14 +743,14 @@ class InstanceManager:
                 n_ticks=self.experiment.n_ticks,
                 tick_rate_hz=k / elapsed,
                 late_ticks=self.summary.late_ticks,
-                states=dict(self._pump.agent_states),
+                states=states,
                 lost=[self.names[i] for i in sorted(self.lost)],
                 paused=self._paused,
             )
         )
 
     def close(self) -> None:
-        """Stop recording (after draining) and close the bus session. Idempotent."""
+        """Close the bus session, then hand the last records to the sink. Idempotent."""
         if self._session is not None:
             try:
                 self._publish_state("stopped", self._stop_reason)
@@ -706,7 +758,7 @@ class InstanceManager:
                 self._entities.clear()
                 self._session.close()
                 self._session = None
-        self._pump.close()
+        self._flush_records()
 
     @property
     def estop_tick(self) -> int | None:

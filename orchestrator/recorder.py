@@ -8,6 +8,9 @@ Topics (a user-facing contract, see ``docs/recording.md``):
   vectors, via :meth:`Recorder.write_vector`.
 * ``/<agent>/status`` — lifecycle state changes, via :meth:`Recorder.write_status`.
 * ``/orchestrator/ticks`` — the timing account of every tick, via :meth:`Recorder.write_ticks`.
+* ``/<agent>/calibration`` — the calibration each vehicle runs with (once, at ``k = 0``), via
+  :func:`record_vehicles`, which also names the entries of ``/<agent>/y`` after the vehicle's
+  ``output_names``.
 
 Every message carries ``k`` (tick), ``t`` (experiment time [s]) and ``values`` (a list of
 numbers, empty for topics that are not vectors); named fields sit beside them. The file is
@@ -26,9 +29,10 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
-from hilswarm.agents.errors import RecordingError
+from hilswarm.agents.errors import HilswarmError, RecordingError
 from hilswarm.agents.mcap_io import McapJsonWriter
-from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator import calibration_report
+from hilswarm.orchestrator.experiment import AgentSpec, Experiment
 from numpy.typing import ArrayLike
 
 logger = logging.getLogger(__name__)
@@ -80,6 +84,11 @@ EXPERIMENT_SCHEMA = _object_schema(
         },
         "agents": {"type": "object"},
     },
+)
+
+
+CALIBRATION_SCHEMA = _object_schema(
+    "vehicle calibration", calibration_report.SCHEMA.get("properties", {})
 )
 
 
@@ -178,6 +187,63 @@ class Recorder:
         with self._lock:
             self._check_open(topic)
             self._writer.add_topic(topic, fields=fields)
+
+    def write_floats(
+        self, topic: str, *, k: int, t: float, values: Sequence[float], log_time_ns: int
+    ) -> None:
+        """:meth:`write_vector` for a vector that is a sequence of Python floats (fast path).
+
+        Raises:
+            RecordingError: the topic was named with other fields than values given.
+        """
+        with self._lock:
+            self._check_open(topic)
+            if not self._experiment_written:
+                self._write_experiment(log_time_ns)
+            writer = self._writer
+            if topic not in writer.topics:
+                writer.add_topic(topic)
+            writer.write_floats(topic, k=k, t=t, values=values, log_time_ns=int(log_time_ns))
+            self.message_count += 1
+
+    def write_encoded(
+        self,
+        topic: str,
+        data: bytes,
+        *,
+        log_time_ns: int,
+        schema: Mapping[str, Any] | None = None,
+    ) -> None:
+        """Record a JSON message already encoded by the caller (see ``write_encoded``).
+
+        ``data`` must hold ``k``, ``t`` and ``values`` like every message of a run recording.
+        """
+        with self._lock:
+            self._check_open(topic)
+            if not self._experiment_written:
+                self._write_experiment(log_time_ns)
+            self._writer.write_encoded(topic, data, int(log_time_ns), schema)
+            self.message_count += 1
+
+    def write_message(self, topic: str, message: Mapping[str, Any], *, log_time_ns: int) -> None:
+        """Record a free-form message (must have ``k``, ``t``, ``values``) on a topic."""
+        self._write_json(topic, message, log_time_ns, None)
+
+    def write_calibration(
+        self, agent: str, calibration: Mapping[str, Any], *, log_time_ns: int
+    ) -> None:
+        """Record the calibration ``agent``'s vehicle runs with on ``/<agent>/calibration``.
+
+        Args:
+            agent: agent name.
+            calibration: :func:`~hilswarm.orchestrator.calibration_report.calibration_as_json`
+                of the vehicle's calibration.
+            log_time_ns: log time [ns, wall clock, Unix epoch].
+        """
+        message = {"k": 0, "t": 0.0, "values": [], **calibration}
+        self._write_json(
+            calibration_report.calibration_topic(agent), message, log_time_ns, CALIBRATION_SCHEMA
+        )
 
     def write_status(
         self,
@@ -325,3 +391,62 @@ def _as_list(values: ArrayLike, topic: str) -> list[float]:
     except (TypeError, ValueError) as exc:
         raise RecordingError(f"{topic}: values must be numbers, got {values!r}") from exc
     return array.tolist()
+
+
+def record_vehicles(recorder: Recorder, experiment: Experiment, *, log_time_ns: int) -> None:
+    """Record what the vehicles of ``experiment`` are, before the first tick.
+
+    For every agent whose vehicle can be built here (as ``hilswarm check`` builds it, without a
+    board): its calibration (the ``calibration`` file of the agent, or the vehicle class's
+    default) on ``/<agent>/calibration``, and the names of its outputs as the fields of
+    ``/<agent>/y`` (``/leader/y.x``). An agent whose vehicle cannot be built (a remote agent's
+    class not installed here) still gets its calibration file recorded when it has one.
+    """
+    for spec in experiment.agents:
+        vehicle = _build_vehicle(experiment, spec)
+        calibration = getattr(vehicle, "calibration", None)
+        if calibration is None and vehicle is None and spec.calibration is not None:
+            calibration = _load_calibration(spec)
+        if calibration is not None:
+            recorder.write_calibration(
+                spec.name,
+                calibration_report.calibration_as_json(calibration),
+                log_time_ns=log_time_ns,
+            )
+        names = getattr(vehicle, "output_names", None)
+        n_outputs = getattr(vehicle, "n_outputs", None)
+        if names and isinstance(n_outputs, int) and len(names) == n_outputs:
+            try:
+                recorder.add_topic(f"/{spec.name}/y", fields=list(names))
+            except RecordingError as exc:  # e.g. an output called "k": plain values then
+                logger.warning("/%s/y without field names: %s", spec.name, exc)
+
+
+def _build_vehicle(experiment: Experiment, spec: AgentSpec) -> Any:
+    """The agent's vehicle built without a board (``None`` when that is not possible here)."""
+    from hilswarm.agents.registry import resolve_vehicle  # noqa: PLC0415 - only when recording
+
+    kwargs: dict[str, Any] = {"name": spec.name, "dt": experiment.dt}
+    if spec.pinout:
+        kwargs["pinout"] = spec.pinout
+    if spec.vehicle_params:
+        kwargs["params"] = spec.vehicle_params
+    if spec.initial_state:
+        kwargs["initial_state"] = spec.initial_state
+    if spec.calibration is not None:
+        kwargs["calibration"] = spec.calibration
+    try:
+        return resolve_vehicle(spec.vehicle)(**kwargs)
+    except (HilswarmError, ValueError, TypeError, OSError, ImportError) as exc:
+        logger.warning("agent %s: vehicle not built for the recording: %s", spec.name, exc)
+        return None
+
+
+def _load_calibration(spec: AgentSpec) -> Any:
+    from hilswarm.agents.calibration import Calibration  # noqa: PLC0415 - only when recording
+
+    try:
+        return Calibration.from_file(spec.calibration)
+    except (HilswarmError, ValueError, OSError) as exc:
+        logger.warning("agent %s: calibration not recorded: %s", spec.name, exc)
+        return None

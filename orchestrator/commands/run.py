@@ -23,6 +23,7 @@ from pathlib import Path
 from types import FrameType
 
 from hilswarm.agents import bus
+from hilswarm.agents.errors import RecordingError
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
@@ -34,7 +35,7 @@ from hilswarm.orchestrator.manager import (
     ManagerError,
     RunSummary,
 )
-from hilswarm.orchestrator.recorder import Recorder
+from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.status_display import StatusDisplay
 
 HELP = "run an experiment file (one process per agent, recorded to MCAP)"
@@ -107,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or default_output(experiment, datetime.datetime.now())
     endpoints = list(args.connect) or [bus.loopback_endpoint(args.port)]
     display = StatusDisplay(sys.stdout)
-    recorder = Recorder(out, experiment, log_time_ns=time.time_ns())
+    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
     manager = InstanceManager(
         experiment,
         recorder=recorder,
@@ -141,14 +142,16 @@ def run(args: argparse.Namespace) -> int:
             f"{experiment.rate_hz:g} Hz, {experiment.duration_s:g} s; bus {', '.join(endpoints)}"
         )
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
+        recorder.wait_ready()
         summary = manager.run()
-    except (ManagerError, AgentProcessError) as exc:
+    except (ManagerError, AgentProcessError, RecordingError) as exc:
         error = str(exc)
     finally:
         display.finish()
         launcher.stop()
         manager.close()
-        recorder.close()
+        if recorder.close() != 0 and not error:
+            error = f"the recording {out} is incomplete (see the recorder's log above)"
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     print(f"recording: {out}")

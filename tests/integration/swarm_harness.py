@@ -55,6 +55,19 @@ def child_pids(pid: int) -> list[int]:
     return children
 
 
+def agent_pids(pid: int) -> list[int]:
+    """Children of ``pid`` that are agent processes (not the recorder process)."""
+    agents = []
+    for child in child_pids(pid):
+        try:
+            command = Path(f"/proc/{child}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"hilswarm.agents.agent" in command:
+            agents.append(child)
+    return agents
+
+
 def pid_alive(pid: int) -> bool:
     """True while ``pid`` exists and is not a zombie."""
     try:
@@ -105,11 +118,11 @@ class RunProcess:
     def remember_agents(self, n: int, timeout_s: float = 60.0) -> list[int]:
         """Wait until ``n`` agent processes exist; remember their pids for cleanup."""
         wait_for(
-            lambda: len(child_pids(self.process.pid)) >= n or self.process.poll() is not None,
+            lambda: len(agent_pids(self.process.pid)) >= n or self.process.poll() is not None,
             timeout_s,
             f"{n} agent processes",
         )
-        self.agent_pids = child_pids(self.process.pid)
+        self.agent_pids = agent_pids(self.process.pid)
         return self.agent_pids
 
     def wait(self, timeout_s: float) -> int:
