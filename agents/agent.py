@@ -63,7 +63,16 @@ class AgentConfigError(HilswarmError, ValueError):
 
 
 class StopRequestedError(HilswarmError, RuntimeError):
-    """The agent was told to stop (signal, lost manager) before it was running."""
+    """The agent was told to stop (signal, lost manager) before it was running.
+
+    Args:
+        message: what happened.
+        orderly: ``True`` when the stop was asked for (a signal), ``False`` for a fault.
+    """
+
+    def __init__(self, message: str, *, orderly: bool = False) -> None:
+        super().__init__(message)
+        self.orderly = orderly
 
 
 @dataclass(frozen=True)
@@ -310,7 +319,10 @@ class Agent:
             except queue.Empty:
                 return
             if item[0] in (_SIGNAL, _MANAGER_GONE):
-                raise StopRequestedError(f"agent {self.config.name!r}: {item[1]} during start-up")
+                raise StopRequestedError(
+                    f"agent {self.config.name!r}: {item[1]} during start-up",
+                    orderly=item[0] == _SIGNAL,
+                )
             self._queue_replay.append(item)
 
     def _watch_matching(self, publisher: zenoh.Publisher) -> threading.Event:
@@ -421,7 +433,7 @@ class Agent:
             self._queue_replay.clear()
             status = self._loop()
         except StopRequestedError as exc:
-            self._go_safe(str(exc))
+            self._go_safe(str(exc), fault=not exc.orderly)
             status = 0
         except HilswarmError as exc:
             logger.error("agent %s failed: %s", self.config.name, exc)
@@ -452,11 +464,11 @@ class Agent:
             elif kind == _CONTROL:
                 self._on_control(item[1])
             elif kind in (_MANAGER_GONE, _SIGNAL):
-                self._go_safe(str(item[1]))
+                self._go_safe(str(item[1]), fault=kind == _MANAGER_GONE)
                 self._stop_requested = str(item[1])
             if self._stop_requested:
                 break
-        self._go_safe(self._stop_requested)
+        self._go_safe(self._stop_requested, fault=False)  # a stop command: the orderly end
         return 0
 
     def use_hardware(self, hardware: AgentHardware) -> None:
@@ -660,15 +672,22 @@ class Agent:
         if self.lifecycle.state_id not in ("safe", "stopped"):
             self.lifecycle.enter_safe(detail=f"e-stop: {reason}")
 
-    def _go_safe(self, reason: str) -> None:
-        """Vehicle to safe mode (outputs to safe values, pushed to the board) and state safe."""
+    def _go_safe(self, reason: str, *, fault: bool = True) -> None:
+        """Vehicle to safe mode (outputs to safe values, pushed to the board) and state safe.
+
+        ``fault=False`` marks an orderly stop (run completed, stop or signal): the vehicle logs
+        it at INFO instead of WARNING.
+        """
         if self.lifecycle.state_id in ("safe", "stopped"):
             return
         hw = self.hardware
         if hw is not None:
             try:
                 if not getattr(hw.vehicle, "safe_mode", False):
-                    hw.vehicle.enter_safe_mode(reason)
+                    if fault:
+                        hw.vehicle.enter_safe_mode(reason)
+                    else:
+                        hw.vehicle.enter_safe_mode(reason, fault=False)
                 hw.vehicle.exchange()  # push the safe values to the board now
             except HilswarmError as exc:
                 logger.error("%s: could not make outputs safe: %s", self.config.name, exc)

@@ -34,11 +34,44 @@ from hilswarm.agents.sim.plant import integrate
 from hilswarm.agents.telemetry import Channel, Telemetry
 from numpy.typing import ArrayLike
 
+_FLOAT64 = np.dtype(np.float64)
+#: The neighbours of a tick without any.
+_NO_NEIGHBOURS: Mapping[str, np.ndarray | None] = MappingProxyType({})
+
 
 def _frozen(values: ArrayLike) -> np.ndarray:
+    """A read-only float array of ``values``: a copy, unless ``values`` already is a read-only
+    float array owning its data (nobody can change it behind the controller's back)."""
+    if (
+        type(values) is np.ndarray
+        and values.dtype == _FLOAT64
+        and not values.flags.writeable
+        and values.flags.owndata
+    ):
+        return values
     array = np.array(values, dtype=np.float64)
     array.flags.writeable = False
     return array
+
+
+def all_finite(values: np.ndarray) -> bool:
+    """True when every entry of the float array ``values`` is finite (no NaN, no ±inf).
+
+    Plain float checks for the few entries a controller's vectors have (several times cheaper
+    than ``np.all(np.isfinite(values))`` there), numpy for larger arrays.
+    """
+    if values.size <= _SMALL:
+        return all(map(math.isfinite, values.ravel().tolist()))
+    return bool(np.isfinite(values).all())
+
+
+#: Up to this many entries plain float arithmetic beats a numpy call.
+_SMALL = 16
+
+
+def _is_vector(value: object, size: int) -> bool:
+    """True for a float64 numpy vector of ``size`` entries (needs no conversion)."""
+    return type(value) is np.ndarray and value.dtype == _FLOAT64 and value.shape == (size,)
 
 
 @dataclass(frozen=True)
@@ -240,6 +273,7 @@ class ControlModel:
         self.n_outputs: int | None = n_outputs
         self._given_params: dict[str, Any] = dict(params or {})
         self._params: dict[str, Any] = controller.validate_params(self._given_params)
+        self._params_view: Mapping[str, Any] = MappingProxyType(self._params)
         self._x0 = None if x0 is None else np.array(x0, dtype=np.float64).reshape(-1)
         self._k = 0
         self._x_hat = self._initial_x_hat()
@@ -286,7 +320,7 @@ class ControlModel:
     @property
     def params(self) -> Mapping[str, Any]:
         """The validated parameters (read-only view; replace them with :meth:`set_params`)."""
-        return MappingProxyType(self._params)
+        return self._params_view
 
     def set_params(self, *, reset_state: bool = False, **changes: Any) -> None:
         """Change some parameters; the controller validates the whole new set first.
@@ -306,6 +340,7 @@ class ControlModel:
         given = dict(params)
         validated = self.controller.validate_params(given)
         self._given_params, self._params = given, validated
+        self._params_view = MappingProxyType(validated)
         if reset_state:
             self._x_hat = self._initial_x_hat()
             self._ensure_x_channel()
@@ -342,18 +377,26 @@ class ControlModel:
                 ``x_hat`` of the wrong shape, or a non-finite ``u``.
         """
         controller = self.controller
-        u = _check_vector(controller, "u_k", u_k, self.n_inputs)
-        y = np.asarray(y_k, dtype=np.float64).reshape(-1)
+        n_inputs = self.n_inputs
+        u = u_k if _is_vector(u_k, n_inputs) else _check_vector(controller, "u_k", u_k, n_inputs)
+        if type(y_k) is np.ndarray and y_k.dtype == _FLOAT64 and y_k.ndim == 1:
+            y = y_k
+        else:
+            y = np.asarray(y_k, dtype=np.float64).reshape(-1)
         if self.n_outputs is not None and y.shape != (self.n_outputs,):
             raise ControllerError(
                 f"{controller.name}: y_k must have shape ({self.n_outputs},), got {y.shape}"
             )
         tick_time = self.t0 + self._k * self.dt if t is None else float(t)
-        frozen_neighbours = MappingProxyType(
-            {
-                name: None if value is None else _frozen(value)
-                for name, value in (neighbours or {}).items()
-            }
+        frozen_neighbours = (
+            MappingProxyType(
+                {
+                    name: None if value is None else _frozen(value)
+                    for name, value in neighbours.items()
+                }
+            )
+            if neighbours
+            else _NO_NEIGHBOURS
         )
         tick = TickInput(
             k=self._k,
@@ -363,14 +406,18 @@ class ControlModel:
             y=_frozen(y),
             neighbours=frozen_neighbours,
         )
-        result = controller.step(tick, self._x_hat.copy(), self.params)
+        n_states = self._x_hat.shape[0]
+        result = controller.step(tick, self._x_hat.copy(), self._params_view)
         if not isinstance(result, tuple) or len(result) != 2:
             raise ControllerError(
                 f"{controller.name}.step must return (u_next, x_hat_next), got {type(result)}"
             )
-        u_next = _check_vector(controller, "returned u_{k+1}", result[0], self.n_inputs)
-        x_next = _check_vector(controller, "returned x_hat_{k+1}", result[1], self._x_hat.shape[0])
-        if not np.all(np.isfinite(u_next)):
+        u_next, x_next = result
+        if not _is_vector(u_next, n_inputs):
+            u_next = _check_vector(controller, "returned u_{k+1}", u_next, n_inputs)
+        if not _is_vector(x_next, n_states):
+            x_next = _check_vector(controller, "returned x_hat_{k+1}", x_next, n_states)
+        if not all_finite(u_next):
             raise ControllerError(
                 f"{controller.name}: returned a non-finite u_{{k+1}} at tick {self._k}: {u_next}"
             )

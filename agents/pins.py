@@ -260,6 +260,13 @@ class PinManager:
         self._watchdog_s = 0.0
         self._configured_snapshot: tuple[PinConfig, ...] | None = None
         self._last_reply: TickReply | None = None
+        # Per-tick fast paths, kept up to date by assign() and release(): every rule is
+        # checked once there, so write/read/exchange only look values up.
+        self._layout_version = 0  # bumped by every assign() and release()
+        self._attached_version = -1  # layout the board was configured with
+        self._output_specs: dict[str, tuple[int, int, int]] = {}  # binder -> (pin, lo, hi)
+        self._input_pins: dict[str, int] = {}  # binder -> pin
+        self._reads: tuple[int, ...] = ()  # input pins sampled by exchange(), ascending
 
     # ------------------------------------------------------------------ binding
     def assign(
@@ -323,7 +330,16 @@ class PinManager:
         self._by_binder[binder] = assignment
         if mode.is_output:
             self._staged[number] = safe
-        logger.debug("bound %s", assignment.label)
+            self._output_specs[binder] = (number, *value_range(mode))
+        else:
+            self._input_pins[binder] = number
+        self._layout_changed()
+        if logger.isEnabledFor(logging.DEBUG):
+            logger.debug("bound %s", assignment.label)
+
+    def _layout_changed(self) -> None:
+        self._layout_version += 1
+        self._reads = tuple(sorted(self._input_pins.values()))
 
     def _check_capability(self, pin: int, mode: PinMode, who: str) -> None:
         label = pin_name(pin)
@@ -390,10 +406,13 @@ class PinManager:
         for assignment in victims:
             del self._by_pin[assignment.pin]
             del self._by_binder[assignment.binder]
+            self._output_specs.pop(assignment.binder, None)
+            self._input_pins.pop(assignment.binder, None)
             self._staged.pop(assignment.pin, None)
             if self._samples is not None:
                 self._samples.pop(assignment.pin, None)
             logger.debug("released %s", assignment.label)
+        self._layout_changed()
 
     # ------------------------------------------------------------------ lookups
     def is_assigned(self, pin: int | str) -> bool:
@@ -461,6 +480,12 @@ class PinManager:
             PinError: unknown binder, binder is an input, or value out of range for the mode
                 (digital 0/1, PWM 0-255, servo 500-2500 µs).
         """
+        spec = self._output_specs.get(binder)
+        if spec is not None and type(value) is int:  # common case; anything else: full checks
+            pin, lo, hi = spec
+            if lo <= value <= hi:
+                self._staged[pin] = value
+                return
         assignment = self.find_binder(binder)
         if not assignment.mode.is_output:
             raise PinError(f"cannot write {assignment.label}: it is an input")
@@ -483,6 +508,11 @@ class PinManager:
         Raises:
             PinError: unknown binder, binder is an output, or no exchange has sampled it yet.
         """
+        pin = self._input_pins.get(binder)
+        if pin is not None and self._samples is not None:
+            value = self._samples.get(pin)
+            if value is not None:
+                return value
         assignment = self.find_binder(binder)
         if assignment.mode.is_output:
             raise PinError(f"cannot read {assignment.label}: it is an output")
@@ -537,6 +567,7 @@ class PinManager:
         self._board = board
         self._watchdog_s = watchdog_s
         self._configured_snapshot = tuple(configs)
+        self._attached_version = self._layout_version
         self._samples = None
         return info
 
@@ -544,16 +575,21 @@ class PinManager:
         """Forget the board (does not close it)."""
         self._board = None
         self._configured_snapshot = None
+        self._attached_version = -1
 
     def _require_board(self) -> Board:
-        if self._board is None:
+        board = self._board
+        if board is not None and self._attached_version == self._layout_version:
+            return board  # nothing was bound or released since attach()
+        if board is None:
             raise BoardConnectionError("no board attached to the PinManager: call attach() first")
         if self._configured_snapshot != tuple(self.pin_configs()):
             raise PinError(
                 "pin assignments changed since attach(): call attach() again to reconfigure "
-                f"board {self._board.url!r}"
+                f"board {board.url!r}"
             )
-        return self._board
+        self._attached_version = self._layout_version  # bound and released back: same layout
+        return board
 
     def exchange(self) -> TickReply:
         """Send every output's staged value and sample every input, in one board exchange.
@@ -564,15 +600,16 @@ class PinManager:
             ProtocolError: the reply lacks a sample that was asked for.
         """
         board = self._require_board()
-        reads = [a.pin for a in self.assignments() if a.mode.is_input]
+        reads = self._reads
         reply = board.exchange(dict(self._staged), reads)
-        missing = [pin for pin in reads if pin not in reply.samples]
+        samples = reply.samples
+        missing = [pin for pin in reads if pin not in samples]
         if missing:
             raise ProtocolError(
                 f"board {board.url!r} reply {reply.seq} lacks samples of pins "
                 f"{[pin_name(p) for p in missing]}"
             )
-        self._samples = {pin: int(reply.samples[pin]) for pin in reads}
+        self._samples = {pin: int(samples[pin]) for pin in reads}
         self._last_reply = reply
         return reply
 

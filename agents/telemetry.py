@@ -26,6 +26,8 @@ if TYPE_CHECKING:
 #: Capacity (rows) a new channel starts with.
 DEFAULT_INITIAL_CAPACITY = 64
 
+_FLOAT64 = np.dtype(np.float64)
+
 
 class ChannelArrays(NamedTuple):
     """The filled part of a channel.
@@ -85,6 +87,7 @@ class Channel:
             )
         self.name: str = name
         self.fields: tuple[str, ...] = field_names
+        self._shape = (len(field_names),)
         self._size = 0
         self._k = np.empty(initial_capacity, dtype=np.int64)
         self._t = np.empty(initial_capacity, dtype=np.float64)
@@ -118,24 +121,27 @@ class Channel:
         Raises:
             TelemetryError: ``values`` does not hold exactly ``n_fields`` numbers.
         """
-        try:
-            row = np.asarray(values, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise TelemetryError(
-                f"channel {self.name!r}: expected {self.n_fields} values {self.fields}, "
-                f"got non-numeric {values!r}"
-            ) from None
-        if row.shape != (self.n_fields,) and not (row.ndim == 0 and self.n_fields == 1):
-            raise TelemetryError(
-                f"channel {self.name!r}: expected {self.n_fields} values {self.fields}, "
-                f"got shape {row.shape}"
-            )
+        if not (
+            type(values) is np.ndarray and values.dtype == _FLOAT64 and values.shape == self._shape
+        ):  # anything but a float vector of the right size: convert and check
+            try:
+                values = np.asarray(values, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise TelemetryError(
+                    f"channel {self.name!r}: expected {self.n_fields} values {self.fields}, "
+                    f"got non-numeric {values!r}"
+                ) from None
+            if values.shape != self._shape and not (values.ndim == 0 and self.n_fields == 1):
+                raise TelemetryError(
+                    f"channel {self.name!r}: expected {self.n_fields} values {self.fields}, "
+                    f"got shape {values.shape}"
+                )
         if self._size == self._k.shape[0]:
             self._grow()
         i = self._size
         self._k[i] = k
         self._t[i] = t
-        self._values[i] = row
+        self._values[i] = values
         self._size = i + 1
 
     def _grow(self) -> None:

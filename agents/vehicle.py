@@ -58,6 +58,7 @@ BATTERY_CHANNEL = "battery"
 SafeModeListener = Callable[[str], None]
 
 _MISSING = object()
+_FLOAT64 = np.dtype(np.float64)
 
 
 def _names_problems(owner: Any, names_attr: str, size_attr: str) -> list[str]:
@@ -240,6 +241,7 @@ class Vehicle(ABC):
         self._safe_reason: str | None = None
         self._safe_listeners: list[SafeModeListener] = []
         self.ignored_applies = 0
+        self._update_device_lists()
 
         self.setup_devices()
         self._collect_devices()
@@ -249,6 +251,7 @@ class Vehicle(ABC):
                 f"vehicle {self.name!r} ({cls.__qualname__}): setup_devices() built no device "
                 f"for pinout entr{'y' if len(unused) == 1 else 'ies'} {unused}"
             )
+        self._update_device_lists()
         for battery in self.batteries:
             battery.add_listener(self._on_low_battery)
         if self.batteries:
@@ -388,12 +391,24 @@ class Vehicle(ABC):
             raise VehicleError(f"vehicle {self.name!r}: device {name!r} is added twice")
         device = device_class(self.pins, name, self.pinout[name], **options)
         self.devices[name] = device
+        self._update_device_lists()
         return device
 
     def _collect_devices(self) -> None:
         for value in vars(self).values():
             if isinstance(value, Device) and value.name not in self.devices:
                 self.devices[value.name] = value
+        self._update_device_lists()
+
+    def _update_device_lists(self) -> None:
+        # Per-tick work reads these instead of scanning the devices (built with the devices).
+        self._batteries: tuple[Battery, ...] = tuple(
+            d for d in self.devices.values() if isinstance(d, Battery)
+        )
+        # Limits as floats, and whether any is finite (no clipping work without limits).
+        self._lo_list: list[float] = self._lo.tolist()
+        self._hi_list: list[float] = self._hi.tolist()
+        self._limited = any(math.isfinite(v) for v in self._lo_list + self._hi_list)
 
     # ------------------------------------------------------------------ subclass interface
     @abstractmethod
@@ -439,7 +454,7 @@ class Vehicle(ABC):
     @property
     def batteries(self) -> list[Battery]:
         """Every Battery device."""
-        return [d for d in self.devices.values() if isinstance(d, Battery)]
+        return list(self._batteries)
 
     @property
     def limits(self) -> dict[str, tuple[float, float]]:
@@ -497,28 +512,31 @@ class Vehicle(ABC):
             VehicleError: read_outputs() returned the wrong number of values.
         """
         raw = self.read_outputs()
-        try:
-            y = np.asarray(raw, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise VehicleError(
-                f"vehicle {self.name!r}: read_outputs() returned {raw!r}, not numbers"
-            ) from None
-        if y.shape != (self.n_outputs,):
-            raise VehicleError(
-                f"vehicle {self.name!r}: read_outputs() returned shape {y.shape}, expected "
-                f"({self.n_outputs},) = {self.output_names}"
-            )
+        if type(raw) is np.ndarray and raw.dtype == _FLOAT64 and raw.shape == (self.n_outputs,):
+            y = raw  # the common case: already a float vector of the right size
+        else:
+            try:
+                y = np.asarray(raw, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise VehicleError(
+                    f"vehicle {self.name!r}: read_outputs() returned {raw!r}, not numbers"
+                ) from None
+            if y.shape != (self.n_outputs,):
+                raise VehicleError(
+                    f"vehicle {self.name!r}: read_outputs() returned shape {y.shape}, expected "
+                    f"({self.n_outputs},) = {self.output_names}"
+                )
         self._y = y.copy()
         self._k, self._t = k, t
-        volts = self.check_batteries()
-        if volts:
+        if self._batteries:
+            volts = self.check_batteries()
             self.telemetry[BATTERY_CHANNEL].append(k, t, volts)
         self.record_telemetry(k, t, y.copy())
         return y
 
     def check_batteries(self) -> list[float]:
         """Sense every battery [V] (a low one puts the vehicle in safe mode)."""
-        return [battery.sense() for battery in self.batteries]
+        return [battery.sense() for battery in self._batteries]
 
     def apply(self, u: ArrayLike) -> None:
         """Limit ``u`` and stage it on the devices (sent by the next exchange()).
@@ -528,21 +546,24 @@ class Vehicle(ABC):
         Raises:
             VehicleError: wrong shape or non-finite values (names the input).
         """
-        try:
-            vector = np.asarray(u, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise VehicleError(f"vehicle {self.name!r}: u = {u!r} is not numbers") from None
-        if vector.shape != (self.n_inputs,):
-            raise VehicleError(
-                f"vehicle {self.name!r}: u has shape {vector.shape}, expected "
-                f"({self.n_inputs},) = {self.input_names}"
-            )
-        bad = np.flatnonzero(~np.isfinite(vector))
-        if bad.size:
-            raise VehicleError(
-                f"vehicle {self.name!r}: u[{bad[0]}] ({self.input_names[bad[0]]}) = "
-                f"{vector[bad[0]]} is not finite"
-            )
+        if type(u) is np.ndarray and u.dtype == _FLOAT64 and u.shape == (self.n_inputs,):
+            vector = u  # the common case: no conversion
+        else:
+            try:
+                vector = np.asarray(u, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise VehicleError(f"vehicle {self.name!r}: u = {u!r} is not numbers") from None
+            if vector.shape != (self.n_inputs,):
+                raise VehicleError(
+                    f"vehicle {self.name!r}: u has shape {vector.shape}, expected "
+                    f"({self.n_inputs},) = {self.input_names}"
+                )
+        values = vector.tolist()  # plain floats: cheaper than numpy on a few entries
+        for i, value in enumerate(values):
+            if not math.isfinite(value):
+                raise VehicleError(
+                    f"vehicle {self.name!r}: u[{i}] ({self.input_names[i]}) = {value} is not finite"
+                )
         if self._safe_mode:
             self.ignored_applies += 1
             if self.ignored_applies == 1:
@@ -550,21 +571,28 @@ class Vehicle(ABC):
                     "vehicle %r is in safe mode (%s): apply(%s) ignored",
                     self.name,
                     self._safe_reason,
-                    vector.tolist(),
+                    values,
                 )
             return
-        limited = np.clip(vector, self._lo, self._hi)
-        applied = self.actuate(limited.copy())
+        if self._limited:  # np.clip's result, element by element (min(max(u, lo), hi))
+            lo, hi = self._lo_list, self._hi_list
+            values = [min(max(value, lo[i]), hi[i]) for i, value in enumerate(values)]
+        applied = self.actuate(np.array(values, dtype=np.float64))
         if applied is None:
-            self._u = limited
+            self._u = np.array(values, dtype=np.float64)
             return
-        actual = np.asarray(applied, dtype=np.float64)
-        if actual.shape != (self.n_inputs,):
-            raise VehicleError(
-                f"vehicle {self.name!r}: actuate() returned shape {actual.shape}, expected "
-                f"({self.n_inputs},) or None"
-            )
-        self._u = actual.copy()
+        if not (
+            type(applied) is np.ndarray
+            and applied.dtype == _FLOAT64
+            and applied.shape == (self.n_inputs,)
+        ):
+            applied = np.asarray(applied, dtype=np.float64)
+            if applied.shape != (self.n_inputs,):
+                raise VehicleError(
+                    f"vehicle {self.name!r}: actuate() returned shape {applied.shape}, expected "
+                    f"({self.n_inputs},) or None"
+                )
+        self._u = applied.copy()
 
     def exchange(self) -> TickReply | None:
         """One board round trip: staged writes out, samples in (``None`` without a board)."""
@@ -599,19 +627,30 @@ class Vehicle(ABC):
             raise VehicleError(f"vehicle {self.name!r}: listener {listener!r} is not callable")
         self._safe_listeners.append(listener)
 
-    def enter_safe_mode(self, reason: str) -> None:
+    def enter_safe_mode(self, reason: str, *, fault: bool = True) -> None:
         """Drive every actuator to its safe state, latch safe mode and notify listeners.
 
         The safe values are staged and, with a board attached, the board is e-stopped at once
         (it holds the outputs safe until it is configured again). Later apply() calls are
         ignored. Entering again does nothing.
+
+        Args:
+            reason: why, for logs, status and listeners.
+            fault: ``True`` (default) for faults (low battery, e-stop, lost link, errors),
+                logged at WARNING; ``False`` for an orderly stop (the run completed, a stop was
+                requested), logged at INFO.
         """
         if self._safe_mode:
             logger.debug("vehicle %r already in safe mode; new reason %r", self.name, reason)
             return
         self._safe_mode = True
         self._safe_reason = reason
-        logger.warning("vehicle %r enters safe mode: %s", self.name, reason)
+        logger.log(
+            logging.WARNING if fault else logging.INFO,
+            "vehicle %r enters safe mode: %s",
+            self.name,
+            reason,
+        )
         for actuator in self.actuators:
             try:
                 actuator.safe()

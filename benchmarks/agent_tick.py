@@ -117,25 +117,37 @@ def offline_agent(config: AgentConfig) -> Agent:
 
 
 def tick_loop(case: Case) -> Callable[[int], float]:
-    """A function running ``n`` more ticks of ``case``; returns seconds per tick."""
+    """A function running ``n`` more ticks of ``case``; returns CPU seconds per tick."""
     agent = offline_agent(case.config)
     n_out = int(agent.hardware.vehicle.n_outputs)
     neighbour_y = {
         name: np.linspace(0.1, 0.3, n_out) + i for i, name in enumerate(case.config.neighbours)
     }
     state = {"k": 0}
-    clock = time.perf_counter
+    clock = time.thread_time  # CPU time of this thread: what the agent pays, load or not
 
     def run(n: int) -> float:
         k0 = state["k"]
+        # What the manager and the neighbours send is encoded by them, not timed here.
+        messages = [
+            (
+                [
+                    (name, bus.encode_vector(k - 1, (k - 1) * DT, values))
+                    for name, values in neighbour_y.items()
+                ]
+                if k > 0  # neighbours' y_{k-1} arrive before tick k
+                else [],
+                bus.encode_tick(bus.TickMessage(k, k * DT)),
+            )
+            for k in range(k0, k0 + n)
+        ]
+        receive, work, decode_tick = agent.receive_neighbour, agent.tick_work, bus.decode_tick
         start = clock()
-        for k in range(k0, k0 + n):
-            t = k * DT
-            if k > 0:  # neighbours' y_{k-1} arrive before tick k
-                for name, values in neighbour_y.items():
-                    agent.receive_neighbour(name, bus.encode_vector(k - 1, t - DT, values))
-            tick = bus.decode_tick(bus.encode_tick(bus.TickMessage(k, t)))
-            agent.tick_work(tick.k, tick.t)
+        for outputs, tick_payload in messages:
+            for name, payload in outputs:
+                receive(name, payload)
+            tick = decode_tick(tick_payload)
+            work(tick.k, tick.t)
         state["k"] = k0 + n
         return (clock() - start) / n
 
@@ -143,30 +155,31 @@ def tick_loop(case: Case) -> Callable[[int], float]:
 
 
 def measure(run: Callable[[int], float], ticks: int, repeats: int) -> float:
-    """Median over ``repeats`` batches of ``ticks // repeats`` ticks [s per tick]."""
+    """Median over ``repeats`` batches of ``ticks // repeats`` ticks [CPU s per tick]."""
     batch = max(1, ticks // repeats)
     run(min(batch, 200))  # warm-up: first ticks, lazy imports, caches
     return statistics.median(run(batch) for _ in range(repeats))
 
 
 def numpy_baseline(repeats: int) -> float:
-    """Seconds per bare ``K @ y`` (2 x 4 gain, the state-feedback size)."""
+    """CPU seconds per bare ``K @ y`` (2 x 4 gain, the state-feedback size)."""
     gain = np.array([[3.01, 4.0, 0.0, 0.0], [0.0, 0.0, 3.01, 4.0]])
     y = np.array([4.0, 0.0, -4.0, 0.0])
     n = 20000
     best = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = time.thread_time()
         for _ in range(n):
             gain @ y
-        best.append((time.perf_counter() - start) / n)
+        best.append((time.thread_time() - start) / n)
     return statistics.median(best)
 
 
-def zenoh_baseline(n: int, port: int) -> float | None:
-    """Seconds per bare Zenoh put of a y message with its report, client -> loopback router.
+def zenoh_baseline(n: int, port: int) -> tuple[float, float] | None:
+    """Bare Zenoh put of a y message with its report, client -> loopback router.
 
-    Returns ``None`` when no loopback session can be opened (e.g. the port is in use).
+    Returns ``(CPU seconds of the calling thread, wall seconds)`` per put, or ``None`` when
+    no loopback session can be opened (e.g. the port is in use).
     """
     import zenoh  # noqa: PLC0415 - only this baseline needs it directly
 
@@ -195,10 +208,10 @@ def zenoh_baseline(n: int, port: int) -> float | None:
             report = bus.encode_report(bus.AgentTiming(), np.zeros(2), np.zeros(5))
             for _ in range(200):  # warm-up
                 publisher.put(payload, attachment=report)
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.thread_time()
             for _ in range(n):
                 publisher.put(payload, attachment=report)
-            per_put = (time.perf_counter() - start) / n
+            per_put = ((time.thread_time() - start_cpu) / n, (time.perf_counter() - start) / n)
             publisher.undeclare()
         finally:
             client.close()
@@ -239,14 +252,22 @@ def main(argv: list[str] | None = None) -> int:
 
     matvec = numpy_baseline(repeats)
     put = None if args.no_zenoh else zenoh_baseline(2000 if args.short else 20000, args.port)
-    print(f"baselines: numpy K @ y (2x4) {matvec * 1e6:7.2f} us", end="")
-    print(f", Zenoh put (client -> loopback router) {put * 1e6:7.2f} us" if put else "")
+    print(f"baselines: numpy K @ y (2x4) {matvec * 1e6:.2f} us CPU", end="")
+    if put:
+        print(
+            f"; Zenoh put client -> loopback router {put[0] * 1e6:.1f} us CPU "
+            f"({put[1] * 1e6:.1f} us wall)"
+        )
+        put_cpu = put[0]
+    else:
+        print()
+        put_cpu = None
     print(
-        f"{'case':<11} {'agent work':>11} {'x matvec':>9} {'x put':>7}   ({ticks} ticks, dt {DT} s)"
+        f"{'case':<11} {'CPU/tick':>11} {'x matvec':>9} {'x put':>7}   ({ticks} ticks, dt {DT} s)"
     )
     for case in chosen:
         per_tick = measure(tick_loop(case), ticks, repeats)
-        ratio_put = f"{per_tick / put:7.1f}" if put else "      -"
+        ratio_put = f"{per_tick / put_cpu:7.1f}" if put_cpu else "      -"
         print(
             f"{case.name:<11} {per_tick * 1e6:8.1f} us {per_tick / matvec:9.0f} {ratio_put}"
             f"   {case.title}"

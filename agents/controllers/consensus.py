@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import numpy as np
-from hilswarm.agents.control import Controller, TickInput
+from hilswarm.agents.control import Controller, TickInput, all_finite
 from hilswarm.agents.errors import ControllerError
 
 
@@ -85,7 +85,7 @@ class LinearConsensus(Controller):
                     f"consensus: neighbour {name!r} sent y of shape {value.shape}, this agent's "
                     f"y has shape {own.shape}; consensus needs outputs of the same size"
                 )
-            if not np.all(np.isfinite(value)):
+            if not all_finite(value):
                 continue
             disagreement += weights.get(name, 1.0) * (own - value)
         u_next = -params["gain"] * disagreement

@@ -100,6 +100,8 @@ class WaypointController(Controller):
     """
 
     n_states: ClassVar[int] = len(X_HAT_FIELDS)
+    #: (validated waypoints, parsed points, fingerprint) of the last list step() saw.
+    _route_cache: tuple[Any, list[tuple[float, float]], float] | None = None
     default_params: ClassVar[Mapping[str, Any]] = {
         "waypoints": [[0.0, 0.0]],
         "mode": "p",
@@ -115,7 +117,10 @@ class WaypointController(Controller):
     def validate_params(self, params: Mapping[str, Any]) -> dict[str, Any]:
         """Merge ``params`` over the defaults and check every value (raises ControllerError)."""
         merged = super().validate_params(params)
-        merged["waypoints"] = parse_waypoints(merged["waypoints"]).tolist()
+        # Immutable (x, y) pairs [m]: step() parses a list once and trusts it afterwards.
+        merged["waypoints"] = tuple(
+            (x, y) for x, y in parse_waypoints(merged["waypoints"]).tolist()
+        )
         if merged["mode"] not in ("p", "pi"):
             raise ControllerError(
                 f"waypoint controller param 'mode' must be 'p' or 'pi', got {merged['mode']!r}"
@@ -144,26 +149,27 @@ class WaypointController(Controller):
         y = np.asarray(tick.y, dtype=float).reshape(-1)
         if y.size < 3:
             raise ControllerError(f"waypoint controller needs y = [x, y, psi], got {y!r}")
-        x, y_pos, psi = float(y[0]), float(y[1]), float(y[2])
-        waypoints = parse_waypoints(params["waypoints"])
-        fingerprint = waypoints_fingerprint(waypoints)
-        index, phase, integral, previous = int(x_hat[0]), int(x_hat[1]), x_hat[2], x_hat[3]
-        if x_hat[4] != fingerprint:  # a new waypoint list: start over
+        x, y_pos, psi = y.tolist()[:3]
+        waypoints, fingerprint = self._route(params["waypoints"])
+        state = np.asarray(x_hat, dtype=float).tolist()
+        index, phase, integral, previous = int(state[0]), int(state[1]), state[2], state[3]
+        if state[4] != fingerprint:  # a new waypoint list: start over
             index, phase, integral, previous = 0, PIVOTING, 0.0, _NO_PREVIOUS
         index = min(index, len(waypoints) - 1)
         tolerance = params["waypoint_tolerance_m"]
 
-        distance = math.hypot(*(waypoints[index] - (x, y_pos)))
+        target_x, target_y = waypoints[index]
+        distance = math.hypot(target_x - x, target_y - y_pos)
         while distance <= tolerance and index < len(waypoints) - 1:
             index, phase, integral, previous = index + 1, PIVOTING, 0.0, _NO_PREVIOUS
-            distance = math.hypot(*(waypoints[index] - (x, y_pos)))
+            target_x, target_y = waypoints[index]
+            distance = math.hypot(target_x - x, target_y - y_pos)
         last = index == len(waypoints) - 1
         if last and (distance <= tolerance or (phase == HOLDING and distance <= 2.0 * tolerance)):
             return np.zeros(2), np.array([index, HOLDING, 0.0, _NO_PREVIOUS, fingerprint])
         if phase == HOLDING:
             phase = PIVOTING
 
-        target_x, target_y = waypoints[index]
         bearing_error = wrap_angle(math.atan2(target_y - y_pos, target_x - x) - psi)
         pointing = params["pointing_tolerance_rad"]
         if abs(bearing_error) > pointing or (
@@ -178,6 +184,22 @@ class WaypointController(Controller):
         speed, integral = self._forward_speed(distance, previous, integral, tick.dt, params)
         state = np.array([index, DRIVING, integral, distance, fingerprint])
         return np.array([speed, speed]), state
+
+    def _route(self, value: Any) -> tuple[list[tuple[float, float]], float]:
+        """The waypoints ``[(x, y), ...]`` [m] and their fingerprint, parsed once per list.
+
+        Validated parameters hold an immutable tuple, so the parse is remembered for that very
+        object; anything else (a list passed straight to step()) is parsed every time.
+        """
+        cached = self._route_cache
+        if cached is not None and cached[0] is value:
+            return cached[1], cached[2]
+        array = parse_waypoints(value)
+        points = [(x, y) for x, y in array.tolist()]
+        fingerprint = waypoints_fingerprint(array)
+        if type(value) is tuple and all(type(point) is tuple for point in value):
+            self._route_cache = (value, points, fingerprint)
+        return points, fingerprint
 
     @staticmethod
     def _forward_speed(

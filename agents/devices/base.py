@@ -74,6 +74,7 @@ class Device(ABC):
         self.pins: PinManager = pins
         self.name: str = name
         self._pinout: dict[str, int] = {}
+        self._binders: dict[str, str] = {}  # role -> binder of every bound role (per-tick I/O)
         parsed = self._parse_pinout(pinout)
         for role, pin in parsed.items():
             mode = self.role_mode(role)
@@ -88,8 +89,11 @@ class Device(ABC):
             except PinError:
                 if self._pinout:
                     pins.release(device=name)
+                    self._pinout.clear()
+                    self._binders.clear()
                 raise
             self._pinout[role] = pin
+            self._binders[role] = self.binder(role)
 
     # ------------------------------------------------------------------ pinout
     def required_roles(self) -> tuple[str, ...]:
@@ -161,19 +165,26 @@ class Device(ABC):
     # ------------------------------------------------------------------ I/O
     def write(self, role: str, value: int) -> None:
         """Stage ``value`` (wire units) on ``role``'s pin (sent at the next exchange)."""
-        self.pin(role)
-        self.pins.write(self.binder(role), value)
+        binder = self._binders.get(role)
+        if binder is None:
+            self.pin(role)  # raises DeviceError naming the roles
+            binder = self.binder(role)
+        self.pins.write(binder, value)
 
     def read(self, role: str) -> int:
         """The last sample (wire units) of ``role``'s pin."""
-        self.pin(role)
-        return self.pins.read(self.binder(role))
+        binder = self._binders.get(role)
+        if binder is None:
+            self.pin(role)  # raises DeviceError naming the roles
+            binder = self.binder(role)
+        return self.pins.read(binder)
 
     def release(self) -> None:
         """Give every pin back to the PinManager. Idempotent."""
         if self._pinout:
             self.pins.release(device=self.name)
             self._pinout.clear()
+            self._binders.clear()
 
     def __repr__(self) -> str:
         pins = ", ".join(f"{role}={pin}" for role, pin in self._pinout.items())

@@ -110,9 +110,10 @@ class HBridgeMotor(Actuator):
             )
         limit = self.max_duty[motor]
         duty = max(-limit, min(limit, round(value)))
-        self.write(f"{motor}_fwd", 1 if duty > 0 else 0)
-        self.write(f"{motor}_back", 1 if duty < 0 else 0)
-        self.write(f"{motor}_pwm", abs(duty))
+        write = self.write
+        write(f"{motor}_fwd", 1 if duty > 0 else 0)
+        write(f"{motor}_back", 1 if duty < 0 else 0)
+        write(f"{motor}_pwm", duty if duty >= 0 else -duty)
         self._duty[motor] = duty
         return duty
 

@@ -163,6 +163,9 @@ class SimBoard(Board):
     # ------------------------------------------------------------------ state
     def _boot(self, *, hw_watchdog: bool) -> None:
         self._config: dict[int, PinConfig] | None = None
+        # Per-configuration tables of the TICK fast path (see _tick_fast_checks).
+        self._write_ranges: dict[int, tuple[int, int]] = {}
+        self._input_pins: frozenset[int] = frozenset()
         self._outputs: dict[int, int] = {}
         self._watchdog_s = 0.0
         self._last_frame_s = self._time_s
@@ -185,6 +188,8 @@ class SimBoard(Board):
         return flags
 
     def _take_status(self) -> BoardStatus:
+        if not (self._events or self._boot_flags or self._estopped) and self._config is not None:
+            return BoardStatus.OK  # the common reply: nothing to report
         flags = self.status
         self._events = BoardStatus.OK  # WATCHDOG_TRIPPED and RX_ERRORS are reported once
         return flags
@@ -333,6 +338,14 @@ class SimBoard(Board):
         self._outputs = {
             pin: config.safe_value for pin, config in self._config.items() if config.mode.is_output
         }
+        self._write_ranges = {
+            pin: _mode_range(config.mode)
+            for pin, config in self._config.items()
+            if config.mode.is_output
+        }
+        self._input_pins = frozenset(
+            pin for pin, config in self._config.items() if config.mode.is_input
+        )
         self._watchdog_s = watchdog_ms / 1000.0
         self._estopped = False
         self._take_status()  # the CONFIG reply carries (and consumes) the status
@@ -365,7 +378,54 @@ class SimBoard(Board):
         self._frame_received()  # like the firmware: a refused request still feeds the watchdog
         if self._config is None:
             raise _refuse(ErrorCode.NOT_CONFIGURED, "TICK before any CONFIG")
+        fast = self._tick_fast_checks(writes, reads)
+        if fast is None:
+            checked, read_pins = self._tick_checks(writes, reads)
+        else:
+            checked, read_pins = fast
+        if not self._estopped:
+            self._outputs.update(checked)
+        self._exchanges += 1
+        self._frame_received()
+        self._advance(self.dt)
+        samples = {pin: self._sample(pin) for pin in read_pins}
+        return TickReply(seq, self._take_status(), self.board_time_s, samples)
+
+    def _tick_fast_checks(
+        self, writes: Mapping[int, int], reads: Sequence[int]
+    ) -> tuple[dict[int, int], list[int]] | None:
+        """The TICK checks for a request that passes them all (the common case), or ``None``.
+
+        Every write goes to a configured output with an ``int`` value in its mode's range, every
+        read to a configured input, none twice: then the request is valid and its writes and
+        (sorted) reads are returned. Anything else, or anything unusual (bool or numpy
+        numbers), returns ``None`` and :meth:`_tick_checks` decides, with the firmware's order
+        of checks and error codes.
+        """
+        ranges = self._write_ranges
+        for pin, value in writes.items():
+            bounds = ranges.get(pin)
+            if bounds is None or type(pin) is not int or type(value) is not int:
+                return None
+            if not bounds[0] <= value <= bounds[1]:
+                return None
+        inputs = self._input_pins
+        for pin in reads:
+            if type(pin) is not int or pin not in inputs:
+                return None
+        read_pins = sorted(reads)
+        for i in range(1, len(read_pins)):
+            if read_pins[i] == read_pins[i - 1]:
+                return None
+        return dict(writes), read_pins
+
+    def _tick_checks(
+        self, writes: Mapping[int, int], reads: Sequence[int]
+    ) -> tuple[dict[int, int], list[int]]:
+        """Check a TICK request like the firmware; return its writes and sorted reads."""
         config = self._config
+        if config is None:  # exchange() checked it; keep the type checker calm
+            raise _refuse(ErrorCode.NOT_CONFIGURED, "TICK before any CONFIG")
         # Same order as the firmware: dout bits, then rmask, then PWM/servo writes.
         checked: dict[int, int] = {}
         later: list[tuple[int | None, object]] = []
@@ -403,13 +463,7 @@ class SimBoard(Board):
                     pin,
                 )
             checked[entry.pin] = value
-        if not self._estopped:
-            self._outputs.update(checked)
-        self._exchanges += 1
-        self._frame_received()
-        self._advance(self.dt)
-        samples = {pin: self._sample(pin) for pin in sorted(read_pins)}
-        return TickReply(seq, self._take_status(), self.board_time_s, samples)
+        return checked, sorted(read_pins)
 
     def estop(self) -> TickReply:
         """ESTOP: drive every output safe now and latch until the next configure()."""
@@ -472,6 +526,14 @@ class SimBoard(Board):
         if self.plant is not None:
             volts = self.plant.advance(dict(self._outputs), step)
             for pin, value in volts.items():
+                if (
+                    type(pin) is int
+                    and 0 <= pin < PIN_COUNT
+                    and type(value) is float
+                    and math.isfinite(value)
+                ):  # the common case: checked without conversions
+                    self._volts[pin] = value
+                    continue
                 number = _as_pin(pin)
                 volt = float(value)
                 if number is None or not 0 <= number < PIN_COUNT:

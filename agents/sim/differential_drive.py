@@ -47,6 +47,8 @@ from numpy.typing import ArrayLike
 #: Below this |θ| = |ψ̇ Δt| [rad] the arc functions use their Taylor series.
 SERIES_THRESHOLD = 1e-2
 
+_FLOAT64 = np.dtype(np.float64)
+
 
 @dataclass(frozen=True, slots=True)
 class DriveGeometry:
@@ -189,7 +191,22 @@ class DifferentialDrive(ContinuousPlant):
             output_names=("x", "y", "psi"),
         )
 
-    def _checked(self, x: ArrayLike, u: ArrayLike) -> tuple[np.ndarray, tuple[float, float]]:
+    def _checked(
+        self, x: ArrayLike, u: ArrayLike
+    ) -> tuple[np.ndarray | list[float], tuple[float, float]]:
+        if (
+            type(x) is np.ndarray
+            and type(u) is np.ndarray
+            and x.dtype == _FLOAT64
+            and u.dtype == _FLOAT64
+            and x.shape == (3,)
+            and u.shape == (2,)
+        ):  # the common case, checked in plain floats (same values as the numpy path)
+            state_values = x.tolist()
+            v_left, v_right = u.tolist()
+            if all(map(math.isfinite, state_values)) and math.isfinite(v_left + v_right):
+                limit = self.geometry.max_wheel_speed_m_s
+                return state_values, clip_wheel_speeds(v_left, v_right, limit)
         state = np.asarray(x, dtype=float).reshape(-1)
         inputs = np.asarray(u, dtype=float).reshape(-1)
         if state.shape != (3,):
@@ -362,9 +379,10 @@ class FrisbeePinPlant:
     def advance(self, outputs: Mapping[int, int], dt: float) -> Mapping[int, float]:
         """Apply the board's outputs (wire units) for ``dt`` [s]; return analog inputs [V]."""
         speeds = []
+        to_u = self._calibration.to_u
         for name, channel in zip(self._input_names, self._channels, strict=True):
             duty = self.signed_duty(outputs, channel)
-            speeds.append(float(self._calibration.to_u(name, duty)) if duty else 0.0)
+            speeds.append(float(to_u(name, duty)) if duty else 0.0)
         self.wheel_speeds = np.array(speeds, dtype=float)
         self.state = self._drive.step(self.state, self.wheel_speeds, dt)
         self.time_s += dt
@@ -378,4 +396,6 @@ class FrisbeePinPlant:
 
     def pose(self) -> np.ndarray:
         """``[x, y, z, roll, pitch, yaw]`` [m, world frame; rad], z = roll = pitch = 0."""
-        return np.array([self.state[0], self.state[1], 0.0, 0.0, 0.0, wrap_angle(self.state[2])])
+        state = self.state
+        x, y, psi = state.tolist() if type(state) is np.ndarray else state
+        return np.array([x, y, 0.0, 0.0, 0.0, wrap_angle(psi)])

@@ -21,6 +21,7 @@ from hilswarm.agents.errors import PlantError
 from hilswarm.agents.sim.plant import PoseSource
 
 POSE_SIZE = 6
+_FLOAT64 = np.dtype(np.float64)
 
 
 def wrap_angle(angle: np.ndarray) -> np.ndarray:
@@ -73,7 +74,10 @@ class SimulatedMocap:
         self._last_t: float | None = None
 
     def _true_pose(self) -> np.ndarray:
-        pose = np.asarray(self.source.pose(), dtype=np.float64).reshape(-1)
+        pose = self.source.pose()
+        if type(pose) is np.ndarray and pose.dtype == _FLOAT64 and pose.shape == (POSE_SIZE,):
+            return pose
+        pose = np.asarray(pose, dtype=np.float64).reshape(-1)
         if pose.shape != (POSE_SIZE,):
             raise PlantError(
                 f"SimulatedMocap: {type(self.source).__name__}.pose() must return "
@@ -83,6 +87,8 @@ class SimulatedMocap:
 
     def _sample(self) -> np.ndarray:
         pose = self._true_pose()
+        if not (self.noise_std_m or self.noise_std_rad):
+            return pose + 0.0  # a new array, exactly the values pose + zero noise has
         noise = np.concatenate(
             [
                 self._rng.normal(0.0, self.noise_std_m, 3) if self.noise_std_m else np.zeros(3),

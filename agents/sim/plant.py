@@ -18,6 +18,7 @@ outputs in wire units in, analog voltages out).
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from typing import Any, Protocol, runtime_checkable
@@ -90,7 +91,8 @@ def integrate(
         PlantError: unknown method, bad ``substeps`` or negative/non-finite ``dt``.
     """
     check_method(method, substeps)
-    if not np.isfinite(dt) or dt < 0:
+    finite = math.isfinite(dt) if isinstance(dt, float | int) else bool(np.isfinite(dt))
+    if not finite or dt < 0:
         raise PlantError(f"dt must be a finite interval >= 0 [s], got {dt!r}")
     step = _STEPS[method]
     h = dt / substeps

@@ -171,7 +171,8 @@ class FrisbeeBot(Vehicle):
                 f"vehicle {self.name!r}: pose_source.pose() must give [x, y, z, roll, pitch, "
                 f"yaw], got shape {pose.shape}"
             )
-        return np.array([pose[0], pose[1], pose[5]])
+        x, y, _z, _roll, _pitch, yaw = pose.tolist()
+        return np.array([x, y, yaw])
 
     def actuate(self, u: np.ndarray) -> np.ndarray:
         """Wheel speeds [m/s] -> signed duties (calibration) on the H-bridge.
@@ -179,9 +180,11 @@ class FrisbeeBot(Vehicle):
         Returns the speeds the staged integer duties stand for (quantised by the duty step).
         """
         applied = []
-        for motor, name, speed in zip(("left", "right"), self.input_names, u, strict=True):
-            duty = self.drive.actuate(motor, self.to_pwm(name, float(speed)))
-            applied.append(self.to_u(name, duty) if duty else 0.0)
+        drive, to_pwm, to_u = self.drive, self.to_pwm, self.to_u
+        speeds = np.asarray(u, dtype=np.float64).tolist()
+        for motor, name, speed in zip(("left", "right"), self.input_names, speeds, strict=True):
+            duty = drive.actuate(motor, to_pwm(name, speed))
+            applied.append(to_u(name, duty) if duty else 0.0)
         return np.array(applied)
 
     def simulated_hardware(
