@@ -1,24 +1,30 @@
 """Swarm tick benchmark: how many agents the runtime keeps on schedule on this machine.
 
-Realtime mode with simulated boards (Frisbee bots on ``sim://`` boards driving to a waypoint,
-outputs exchanged along a ring graph), N agents at a given rate: p50/p99 tick completion time
-(from the tick's scheduled time until the last y_k is in) and the fraction of late ticks.
-Lockstep mode: speed as a multiple of real time.
+Two fleets on a two-way ring graph: Frisbee bots on simulated ``sim://`` boards driving to a
+waypoint, and simulated integrators running consensus. Realtime mode, N agents at a given
+rate: p50/p99 tick completion time (from the tick's scheduled time until the last y_k is in)
+and the fraction of late ticks. Lockstep mode: speed as a multiple of real time.
 
-    python benchmarks/swarm_ticks.py            # N = 8, 16, 32, 64 at 50/100/200 Hz + lockstep
-    python benchmarks/swarm_ticks.py --short    # N = 8 at 50 Hz realtime + lockstep (< 60 s)
-    python benchmarks/swarm_ticks.py --agents 32 --rates 100 --seconds 10
+    python benchmarks/swarm_ticks.py            # both fleets, N = 8..64 at 50/100/200 Hz
+    python benchmarks/swarm_ticks.py --short    # Frisbee fleet, N = 8 at 50 Hz (< 60 s)
+    python benchmarks/swarm_ticks.py --agents 32 --rates 100 --vehicle simulated
 
-Every run records to a temporary MCAP file like a real run (``--no-record`` to leave it out).
+Every run records to a temporary MCAP file through the recorder process, like ``hilswarm run``
+(``--record inline``: inside the manager process, on its ticking thread; ``--record off``: not
+at all). The last lines compare the figures with the issue's targets: met or missed, with the
+numbers.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import resource
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from hilswarm.agents import bus
@@ -26,6 +32,7 @@ from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
 from hilswarm.orchestrator.manager import InstanceManager, RunSummary
 from hilswarm.orchestrator.recorder import Recorder
+from hilswarm.orchestrator.recorder_process import RecorderProcess
 
 
 def ring_experiment(
@@ -59,10 +66,56 @@ def ring_experiment(
     return path
 
 
+@dataclass
+class Result:
+    """One configuration's figures."""
+
+    vehicle: str
+    mode: str
+    n: int
+    rate_hz: float
+    summary: RunSummary
+    manager_cpu_s: float  # orchestrator process CPU per tick [s] (router threads included)
+    recorder_cpu_s: float  # recorder process CPU per tick [s]
+
+    @property
+    def total(self) -> int:
+        return self.summary.ticks + self.summary.late_ticks
+
+    @property
+    def late_fraction(self) -> float:
+        return self.summary.late_ticks / max(1, self.total)
+
+    def row(self) -> str:
+        p50, p99 = self.summary.completion_percentiles()
+        late = "-" if self.mode == "lockstep" else f"{100 * self.late_fraction:.2f}"
+        speed = f"{self.summary.speed:.1f}x" if self.mode == "lockstep" else "-"
+        return (
+            f"{self.vehicle:9} {self.mode:9} {self.n:>3} {self.rate_hz:>5g} {self.total:>6} "
+            f"{p50 * 1e3:>7.2f} {p99 * 1e3:>7.2f} {late:>6} {self.manager_cpu_s * 1e3:>8.3f} "
+            f"{self.recorder_cpu_s * 1e3:>8.3f} {speed:>7}"
+        )
+
+
+HEADER = (
+    f"{'vehicle':9} {'mode':9} {'N':>3} {'rate':>5} {'ticks':>6} {'p50 ms':>7} {'p99 ms':>7} "
+    f"{'late%':>6} {'mgr ms':>8} {'rec ms':>8} {'speed':>7}"
+)
+
+
+def _process_cpu_s(pid: int) -> float:
+    """User + system CPU of process ``pid`` so far [s] (0 when it is gone)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def run_once(
-    *, n: int, rate_hz: float, mode: str, seconds: float, port: int, record: bool, vehicle: str
-) -> tuple[RunSummary, float]:
-    """Run one configuration; returns the summary and the manager's CPU per tick [s]."""
+    *, n: int, rate_hz: float, mode: str, seconds: float, port: int, record: str, vehicle: str
+) -> Result:
+    """Run one configuration like ``hilswarm run`` does (agents, manager, recorder process)."""
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         experiment = load_experiment(
@@ -71,12 +124,13 @@ def run_once(
             )
         )
         endpoints = [bus.loopback_endpoint(port)]
-        recorder = (
-            Recorder(folder / "run.mcap", experiment, log_time_ns=time.time_ns())
-            if record
-            else None
-        )
-        manager = InstanceManager(experiment, recorder=recorder, listen=endpoints)
+        sink: RecorderProcess | Recorder | None = None
+        if record == "process":
+            sink = RecorderProcess(folder / "run.mcap", experiment, log_time_ns=time.time_ns())
+        elif record == "inline":
+            sink = Recorder(folder / "run.mcap", experiment, log_time_ns=time.time_ns())
+        manager = InstanceManager(experiment, recorder=sink, listen=endpoints)
+        recorder_cpu = 0.0
         try:
             manager.open()
             with AgentLauncher(endpoints) as launcher:
@@ -84,16 +138,89 @@ def run_once(
                     [agent_config_for(experiment, name) for name in experiment.agent_names]
                 )
                 manager.wait_for_agents(300, check=launcher.check)
+                if isinstance(sink, RecorderProcess):
+                    sink.wait_ready()
+                    recorder_cpu = -_process_cpu_s(sink.process.pid)
                 cpu0 = resource.getrusage(resource.RUSAGE_SELF)
                 summary = manager.run()
                 cpu1 = resource.getrusage(resource.RUSAGE_SELF)
         finally:
             manager.close()
-            if recorder is not None:
-                recorder.close()
+            if isinstance(sink, RecorderProcess):
+                recorder_cpu += _process_cpu_s(sink.process.pid)
+                sink.close()
+            elif sink is not None:
+                sink.close()
     cpu = (cpu1.ru_utime + cpu1.ru_stime) - (cpu0.ru_utime + cpu0.ru_stime)
     ticks = max(1, summary.ticks + summary.late_ticks)
-    return summary, cpu / ticks
+    return Result(vehicle, mode, n, rate_hz, summary, cpu / ticks, max(0.0, recorder_cpu) / ticks)
+
+
+def verdicts(results: list[Result]) -> list[str]:
+    """One honest line per target of the issue: met / missed / not measured, with numbers."""
+    lines = []
+
+    def realtime(vehicle: str, n: int, rate: float) -> Result | None:
+        return next(
+            (
+                r
+                for r in results
+                if (r.vehicle, r.mode, r.n, r.rate_hz) == (vehicle, "realtime", n, rate)
+            ),
+            None,
+        )
+
+    for vehicle in sorted({r.vehicle for r in results}):
+        target = realtime(vehicle, 32, 100.0)
+        name = f"[{vehicle}] 32 agents at 100 Hz, p99 < 10 ms and no late ticks"
+        if target is None:
+            lines.append(f"{name}: not measured")
+        else:
+            _, p99 = target.summary.completion_percentiles()
+            met = p99 < 0.010 and target.summary.late_ticks == 0
+            lines.append(
+                f"{name}: {'MET' if met else 'MISSED'} "
+                f"(p99 {p99 * 1e3:.2f} ms, {target.summary.late_ticks} late of {target.total})"
+            )
+        target = realtime(vehicle, 64, 50.0)
+        name = f"[{vehicle}] 64 agents at 50 Hz on schedule (no late ticks, p99 < 20 ms)"
+        if target is None:
+            lines.append(f"{name}: not measured")
+        else:
+            _, p99 = target.summary.completion_percentiles()
+            met = p99 < 0.020 and target.summary.late_ticks == 0
+            lines.append(
+                f"{name}: {'MET' if met else 'MISSED'} "
+                f"(p99 {p99 * 1e3:.2f} ms, {target.summary.late_ticks} late of {target.total})"
+            )
+        lock = next(
+            (
+                r
+                for r in results
+                if (r.vehicle, r.mode, r.n, r.rate_hz) == (vehicle, "lockstep", 8, 100.0)
+            ),
+            None,
+        )
+        name = f"[{vehicle}] lockstep 8 agents at 100 Hz >= 10x real time"
+        if lock is None:
+            lines.append(f"{name}: not measured")
+        else:
+            met = lock.summary.speed >= 10.0
+            lines.append(f"{name}: {'MET' if met else 'MISSED'} ({lock.summary.speed:.1f}x)")
+        kept = [
+            r
+            for r in results
+            if r.vehicle == vehicle and r.mode == "realtime" and r.summary.late_ticks == 0
+        ]
+        if kept:
+            best = max(kept, key=lambda r: (r.n * r.rate_hz, r.n))
+            lines.append(
+                f"[{vehicle}] most kept on schedule: {best.n} agents at {best.rate_hz:g} Hz "
+                f"({best.n * best.rate_hz:g} agent-ticks/s)"
+            )
+        else:
+            lines.append(f"[{vehicle}] no realtime configuration kept on schedule")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -104,61 +231,50 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--agents", type=int, nargs="*", default=[8, 16, 32, 64])
     parser.add_argument("--rates", type=float, nargs="*", default=[50.0, 100.0, 200.0])
     parser.add_argument("--seconds", type=float, default=10.0, help="realtime run length [s]")
-    parser.add_argument("--vehicle", choices=("frisbee", "simulated"), default="frisbee")
-    parser.add_argument("--no-record", action="store_true")
+    parser.add_argument(
+        "--vehicle", choices=("frisbee", "simulated", "both"), default="both",
+        help="fleet: Frisbee bots on sim:// boards, simulated integrators, or both",
+    )  # fmt: skip
+    parser.add_argument(
+        "--record", choices=("process", "inline", "off"), default="process",
+        help="recorder process (as hilswarm run), recorder inside the manager, or none",
+    )  # fmt: skip
     parser.add_argument("--no-lockstep", action="store_true")
     parser.add_argument("--port", type=int, default=17700)
     args = parser.parse_args(argv)
+    lockstep_seconds = 30.0
     if args.short:
-        args.agents, args.rates, args.seconds = [8], [50.0], 5.0
-    record = not args.no_record
+        args.agents, args.rates, args.seconds = [8], [50.0], 4.0
+        args.vehicle = "frisbee" if args.vehicle == "both" else args.vehicle
+        lockstep_seconds = 5.0
+    fleets = ["frisbee", "simulated"] if args.vehicle == "both" else [args.vehicle]
     print(
-        f"vehicle {args.vehicle}, recording {'on' if record else 'off'}, "
-        f"realtime runs of {args.seconds:g} s"
+        f"fleets {', '.join(fleets)}; recording: {args.record}; "
+        f"realtime runs of {args.seconds:g} s; {os.cpu_count()} CPUs\n"
+        "p50/p99: tick completion (scheduled time to last y_k in); mgr/rec ms: CPU per tick of "
+        "the orchestrator process (Zenoh router included) and of the recorder process"
     )
-    print(
-        f"{'mode':9} {'N':>3} {'rate':>6} {'ticks':>6} {'p50 ms':>8} {'p99 ms':>8} "
-        f"{'late %':>7} {'mgr cpu/tick ms':>16}"
-    )
+    print(HEADER, flush=True)
+    results: list[Result] = []
     port = args.port
-    for n in args.agents:
-        for rate in args.rates:
-            summary, cpu = run_once(
-                n=n,
-                rate_hz=rate,
-                mode="realtime",
-                seconds=args.seconds,
-                port=port,
-                record=record,
-                vehicle=args.vehicle,
-            )
+    for vehicle in fleets:
+        configs = [("realtime", n, rate, args.seconds) for n in args.agents for rate in args.rates]
+        if not args.no_lockstep:
+            configs.append(("lockstep", 8, 100.0, lockstep_seconds))
+        for mode, n, rate, seconds in configs:
+            result = run_once(
+                n=n, rate_hz=rate, mode=mode, seconds=seconds, port=port, record=args.record,
+                vehicle=vehicle,
+            )  # fmt: skip
             port += 1
-            total = summary.ticks + summary.late_ticks
-            p50, p99 = summary.completion_percentiles()
-            late = 100.0 * summary.late_ticks / max(1, total)
-            print(
-                f"{'realtime':9} {n:>3} {rate:>6g} {total:>6} {p50 * 1e3:>8.2f} {p99 * 1e3:>8.2f} "
-                f"{late:>7.2f} {cpu * 1e3:>16.2f}",
-                flush=True,
-            )
-    if not args.no_lockstep:
-        seconds = 10.0 if args.short else 30.0
-        summary, cpu = run_once(
-            n=8,
-            rate_hz=100.0,
-            mode="lockstep",
-            seconds=seconds,
-            port=port,
-            record=record,
-            vehicle=args.vehicle,
-        )
-        p50, p99 = summary.completion_percentiles()
-        print(
-            f"{'lockstep':9} {8:>3} {100:>6g} {summary.ticks:>6} {p50 * 1e3:>8.2f} "
-            f"{p99 * 1e3:>8.2f} {'-':>7} {cpu * 1e3:>16.2f}   speed {summary.speed:.1f}x real time"
-        )
+            results.append(result)
+            print(result.row(), flush=True)
+    print("\ntargets:")
+    for line in verdicts(results):
+        print("  " + line)
     return 0
 
 
 if __name__ == "__main__":
+    logging.basicConfig(level=logging.ERROR)
     sys.exit(main())

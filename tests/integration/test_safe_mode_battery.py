@@ -1,7 +1,9 @@
 """Safe mode end to end: a low battery mid-run stops one vehicle; the recording shows it.
 
 Runs ``hilswarm run graphs/safe_mode_battery.toml`` (real agent processes, a real Zenoh bus on
-loopback, simulated boards) and reads the MCAP back.
+loopback, simulated boards) and reads the MCAP back; then the same experiment with
+``on_agent_safe = "stop"`` (``tests/integration/data/safe_mode_battery_stop.toml``), where the
+leader's safe mode ends the run for everyone.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ pytestmark = pytest.mark.integration
 
 REPO = Path(__file__).resolve().parents[2]
 EXPERIMENT = REPO / "graphs" / "safe_mode_battery.toml"
+STOP_EXPERIMENT = Path(__file__).resolve().parent / "data" / "safe_mode_battery_stop.toml"
 RUN_TIMEOUT_S = 240
 
 
@@ -33,10 +36,10 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory):
-    out = tmp_path_factory.mktemp("safe_mode") / "run.mcap"
-    command = [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(EXPERIMENT),
+def run_experiment(experiment: Path, folder: Path) -> tuple[int, str, dict[str, list[dict]]]:
+    """``hilswarm run`` of ``experiment``: exit status, output, messages by topic."""
+    out = folder / "run.mcap"
+    command = [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(experiment),
                "--out", str(out), "--port", str(free_port())]  # fmt: skip
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -48,11 +51,22 @@ def recording(tmp_path_factory):
         os.killpg(process.pid, signal.SIGKILL)
         output, _ = process.communicate(timeout=10)
         pytest.fail(f"hilswarm run did not finish in {RUN_TIMEOUT_S} s:\n{output}")
-    assert process.returncode == 0, output
     messages: dict[str, list[dict]] = {}
     for topic, _, message in iter_messages(out):
         messages.setdefault(topic, []).append(message)
+    return process.returncode, output, messages
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    code, output, messages = run_experiment(EXPERIMENT, tmp_path_factory.mktemp("safe_mode"))
+    assert code == 0, output
     return messages
+
+
+@pytest.fixture(scope="module")
+def stop_run(tmp_path_factory):
+    return run_experiment(STOP_EXPERIMENT, tmp_path_factory.mktemp("safe_mode_stop"))
 
 
 def expected_safe_time_s() -> float:
@@ -97,3 +111,31 @@ def test_follower_keeps_running_and_comes_to_rest_behind_the_leader(recording):
         {"leader": "leader", "distance_m": 0.3}))  # fmt: skip
     final = follower[-1][1]
     assert math.dist(final[:2], slot) < 0.02
+
+
+def test_policy_stop_brings_every_agent_to_safe_mode_and_ends_the_run(stop_run):
+    code, output, recording = stop_run
+    assert code == 1, output  # the run ended early by policy: not what was planned
+    assert "on_agent_safe = stop" in output
+    leader = [(m["state"], m["detail"], m["k"]) for m in recording["/leader/status"]]
+    names = [s for s, _, _ in leader]
+    assert names[-2:] == ["safe", "stopped"]
+    _, detail, k_safe = leader[names.index("safe")]
+    assert "low battery" in detail
+    assert k_safe * load_experiment(STOP_EXPERIMENT).dt == pytest.approx(
+        expected_safe_time_s(), abs=0.2
+    )
+    # f1 was healthy: it went safe because of the policy, and says why.
+    f1 = recording["/f1/status"]
+    assert [m["state"] for m in f1][-2:] == ["safe", "stopped"]
+    f1_safe = next(m for m in f1 if m["state"] == "safe")
+    assert "on_agent_safe = stop" in f1_safe["detail"]
+    assert "leader" in f1_safe["detail"]
+    # The run stopped shortly after the leader's safe mode, long before its 20 s (400 ticks).
+    last_k = recording["/f1/y"][-1]["k"]
+    assert k_safe <= last_k <= k_safe + 20, (k_safe, last_k)
+    # The orchestrator recorded why it stopped.
+    stopping = [m for m in recording["/orchestrator/status"] if m["state"] == "stopping"]
+    assert len(stopping) == 1
+    assert "agent leader entered safe mode" in stopping[0]["detail"]
+    assert "on_agent_safe = stop" in stopping[0]["detail"]

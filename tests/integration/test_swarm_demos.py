@@ -7,7 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hilswarm.agents.calibration import Calibration
 from hilswarm.agents.sim import chapter3
+from hilswarm.agents.vehicles.frisbee import DEFAULT_CALIBRATION
+from hilswarm.orchestrator.calibration_report import calibration_as_json
 from hilswarm.orchestrator.experiment import load_experiment
 from swarm_harness import REPO, RunProcess, free_port, read_recording
 
@@ -22,6 +25,17 @@ def runs() -> Iterator[list[RunProcess]]:
     yield started
     for run in started:
         run.cleanup()
+
+
+@pytest.fixture(scope="module")
+def lead_follow_recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
+    """The recording of ``graphs/lead_follow.toml`` (run once for the tests that read it)."""
+    started: list[RunProcess] = []
+    try:
+        yield run_demo(started, tmp_path_factory.mktemp("lead_follow"), "lead_follow")
+    finally:
+        for run in started:
+            run.cleanup()
 
 
 def run_demo(runs: list[RunProcess], tmp_path: Path, name: str) -> dict:
@@ -63,8 +77,8 @@ def test_consensus_ring_converges_to_the_average_of_initial_states(
         np.testing.assert_allclose(ys[-1]["values"], average, atol=1e-3)
 
 
-def test_lead_follow_every_agent_reaches_its_goal(runs: list[RunProcess], tmp_path: Path) -> None:
-    recording = run_demo(runs, tmp_path, "lead_follow")
+def test_lead_follow_every_agent_reaches_its_goal(lead_follow_recording: dict) -> None:
+    recording = lead_follow_recording
     experiment = load_experiment(GRAPHS / "lead_follow.toml")
     leader = experiment.agent("leader").params
     final = {
@@ -78,3 +92,24 @@ def test_lead_follow_every_agent_reaches_its_goal(runs: list[RunProcess], tmp_pa
         heading = ahead[2]
         target = ahead[:2] - params["distance_m"] * np.array([np.cos(heading), np.sin(heading)])
         assert np.linalg.norm(final[follower][:2] - target) < 0.05, (follower, final)
+
+
+def test_lead_follow_records_every_vehicles_calibration(lead_follow_recording: dict) -> None:
+    """Each Frisbee bot runs with the shipped reference calibration; the run records it."""
+    expected = calibration_as_json(Calibration.from_file(DEFAULT_CALIBRATION))
+    assert expected["inputs"], "the reference calibration has tables"
+    for name in ("leader", "f1", "f2"):
+        messages = lead_follow_recording[f"/{name}/calibration"]
+        assert len(messages) == 1
+        message = messages[0]
+        assert (message["k"], message["t"], message["values"]) == (0, 0.0, [])
+        for key in ("vehicle_id", "date", "source"):
+            assert message[key] == expected[key]
+        assert [i["name"] for i in message["inputs"]] == [i["name"] for i in expected["inputs"]]
+        for got, want in zip(message["inputs"], expected["inputs"], strict=True):
+            assert got["unit"] == want["unit"]
+            np.testing.assert_allclose(got["u"], want["u"], rtol=0, atol=0)
+            np.testing.assert_allclose(got["pwm"], want["pwm"], rtol=0, atol=0)
+    # The outputs are named after the vehicle's output_names, beside values.
+    first = lead_follow_recording["/leader/y"][0]
+    assert first["values"] == [first["x"], first["y"], first["psi"]]
