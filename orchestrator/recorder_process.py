@@ -115,6 +115,9 @@ class RecorderProcess:
         line = stdout.readline() if ready else b""
         if line != _READY:
             code = self.process.poll()
+            if code is None and ready:  # its output closed: it is exiting
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    code = self.process.wait(timeout=10)
             why = f"exited with status {code}" if code is not None else "did not answer"
             raise RecordingError(
                 f"the recorder process for {self.path} {why} within {timeout_s} s; "

@@ -18,6 +18,7 @@ from swarm_harness import (
     TOY_NEIGHBOURS,
     RunProcess,
     Spy,
+    child_pids,
     connect_spy,
     free_port,
     pid_alive,
@@ -253,6 +254,43 @@ def test_orchestrator_killed_agents_exit_and_recording_is_recoverable(
     assert result.returncode == 0, result.stdout + result.stderr
     recording = read_recording(recovered)
     assert len(recording["/a/y"]) > 10
+    with recovered.open("rb") as f:
+        assert make_reader(f).get_summary() is not None
+
+
+def test_recorder_killed_run_goes_on_and_recording_is_recoverable(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    experiment = write_toy_experiment(tmp_path / "toy.toml", mode="realtime", duration_s=4.0)
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    run.remember_agents(4)
+    wait_for(lambda: spy.last_tick() >= 60, 60, "tick 60")
+    recorders = [
+        pid
+        for pid in child_pids(run.process.pid)
+        if b"recorder_process" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    ]
+    assert len(recorders) == 1
+    os.kill(recorders[0], signal.SIGKILL)
+    # The swarm is not stopped by a lost recording; the run says the recording is incomplete.
+    assert run.wait(60) == 1, run.output()
+    assert "incomplete" in run.output()
+    assert spy.last_tick() == 199
+    recovered = tmp_path / "recovered.mcap"
+    result = subprocess.run(
+        [*CLI, "recover", str(run.out), "-o", str(recovered)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert result.returncode == 0, result.stdout + result.stderr
+    recording = read_recording(recovered)
+    assert recording["/experiment"]
+    ks = [m["k"] for m in recording["/a/y"]]
+    assert ks == list(range(len(ks)))  # every complete chunk, in order, nothing invented
     with recovered.open("rb") as f:
         assert make_reader(f).get_summary() is not None
 
