@@ -251,8 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"fleets {', '.join(fleets)}; recording: {args.record}; "
         f"realtime runs of {args.seconds:g} s; {os.cpu_count()} CPUs\n"
-        "p50/p99: tick completion (scheduled time to last y_k in); mgr/rec ms: CPU per tick of "
-        "the orchestrator process (Zenoh router included) and of the recorder process"
+        "p50/p99: tick completion (scheduled time to last y_k in; a late tick counts as inf);\n"
+        "mgr/rec ms: CPU per tick of the orchestrator process (Zenoh router included) and of "
+        "the recorder process"
     )
     print(HEADER, flush=True)
     results: list[Result] = []
