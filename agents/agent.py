@@ -606,6 +606,7 @@ class Agent:
             neighbours = self._neighbour_outputs(k - 1, missing, stale_ok=skipped > 0)
             try:
                 u_new = hw.model.step(self._u, self._y, t=t - dt, neighbours=neighbours)
+                u_new.flags.writeable = False  # ours alone: the next step needs no copy of it
             except Exception as exc:  # user controller code: any failure means safe mode
                 logger.exception("%s: controller failed at tick %d", self.config.name, k)
                 self._go_safe(f"controller failed at tick {k}: {type(exc).__name__}: {exc}")

@@ -92,6 +92,7 @@ class Channel:
         self._k = np.empty(initial_capacity, dtype=np.int64)
         self._t = np.empty(initial_capacity, dtype=np.float64)
         self._values = np.empty((initial_capacity, len(field_names)), dtype=np.float64)
+        self._capacity = initial_capacity
 
     @property
     def n_fields(self) -> int:
@@ -101,7 +102,7 @@ class Channel:
     @property
     def capacity(self) -> int:
         """Rows currently allocated (grows by doubling)."""
-        return self._k.shape[0]
+        return self._capacity
 
     def __len__(self) -> int:
         return self._size
@@ -121,8 +122,10 @@ class Channel:
         Raises:
             TelemetryError: ``values`` does not hold exactly ``n_fields`` numbers.
         """
-        if not (
-            type(values) is np.ndarray and values.dtype == _FLOAT64 and values.shape == self._shape
+        if (
+            type(values) is not np.ndarray
+            or values.shape != self._shape
+            or values.dtype != _FLOAT64
         ):  # anything but a float vector of the right size: convert and check
             try:
                 values = np.asarray(values, dtype=np.float64)
@@ -136,9 +139,9 @@ class Channel:
                     f"channel {self.name!r}: expected {self.n_fields} values {self.fields}, "
                     f"got shape {values.shape}"
                 )
-        if self._size == self._k.shape[0]:
-            self._grow()
         i = self._size
+        if i == self._capacity:
+            self._grow()
         self._k[i] = k
         self._t[i] = t
         self._values[i] = values
@@ -153,6 +156,7 @@ class Channel:
         t[: self._size] = self._t[: self._size]
         values[: self._size] = self._values[: self._size]
         self._k, self._t, self._values = k, t, values
+        self._capacity = new_capacity
 
     def arrays(self, *, copy: bool = True) -> ChannelArrays:
         """The filled part of the channel as ``(k, t, values)``.

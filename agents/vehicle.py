@@ -405,6 +405,7 @@ class Vehicle(ABC):
         self._batteries: tuple[Battery, ...] = tuple(
             d for d in self.devices.values() if isinstance(d, Battery)
         )
+        self._battery_volts = np.empty(len(self._batteries))  # one tick's voltages [V]
         # Limits as floats, and whether any is finite (no clipping work without limits).
         self._lo_list: list[float] = self._lo.tolist()
         self._hi_list: list[float] = self._hi.tolist()
@@ -529,7 +530,9 @@ class Vehicle(ABC):
         self._y = y.copy()
         self._k, self._t = k, t
         if self._batteries:
-            volts = self.check_batteries()
+            volts = self._battery_volts
+            for i, battery in enumerate(self._batteries):
+                volts[i] = battery.sense()
             self.telemetry[BATTERY_CHANNEL].append(k, t, volts)
         self.record_telemetry(k, t, y.copy())
         return y

@@ -38,8 +38,9 @@ from hilswarm.agents.agent import Agent, AgentConfig, build_hardware
 
 #: Control period of every case [s] (100 Hz, the benchmark target rate).
 DT = 0.01
-#: Waypoints of the Frisbee case [m, world frame]: a 1 m square, so it pivots and drives.
-SQUARE = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]
+#: Waypoints of the Frisbee case [m, world frame]: a 1 m square, driven eight times (~30000
+#: ticks at 100 Hz), so the robot keeps pivoting and driving and never holds still.
+SQUARE = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]] * 8
 
 
 @dataclass(frozen=True)

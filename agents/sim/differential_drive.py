@@ -253,6 +253,27 @@ class DifferentialDrive(ContinuousPlant):
             return self.step(x, u, dt)
         return super().advance(t, x, u, dt, method=method, substeps=substeps)
 
+    def step_floats(
+        self, state: Sequence[float], wheels: Sequence[float], *, dt: float
+    ) -> tuple[float, float, float]:
+        """:meth:`step` on plain floats, the same values: ``state = (x, y, psi)`` [m, m, rad]
+        after ``dt`` [s] at ``wheels = (v_left, v_right)`` [m/s] (clipped to the limit).
+
+        Raises:
+            PlantError: non-finite values or a negative/non-finite ``dt``.
+        """
+        if not (math.isfinite(dt) and dt >= 0):
+            raise PlantError(f"dt must be a finite number >= 0 [s], got {dt!r}")
+        x, y, psi = state
+        v_left, v_right = wheels
+        if not all(map(math.isfinite, (x, y, psi, v_left, v_right))):
+            raise PlantError(f"non-finite state {[x, y, psi]} or input {[v_left, v_right]}")
+        limit = self.geometry.max_wheel_speed_m_s
+        v_left, v_right = clip_wheel_speeds(v_left, v_right, limit)
+        return arc_step(
+            x, y, psi, v_left, v_right, dt=dt, track_width_m=self.geometry.track_width_m
+        )
+
     def step(self, x: ArrayLike, u: ArrayLike, dt: float) -> np.ndarray:
         """Exact state after ``dt`` [s] with the (clipped) input held constant."""
         if not (math.isfinite(dt) and dt >= 0):
@@ -384,7 +405,12 @@ class FrisbeePinPlant:
             duty = self.signed_duty(outputs, channel)
             speeds.append(float(to_u(name, duty)) if duty else 0.0)
         self.wheel_speeds = np.array(speeds, dtype=float)
-        self.state = self._drive.step(self.state, self.wheel_speeds, dt)
+        state = self.state
+        if type(state) is np.ndarray and state.dtype == _FLOAT64 and state.shape == (3,):
+            # The common case: the exact arc in plain floats.
+            self.state = np.array(self._drive.step_floats(state.tolist(), speeds, dt=dt))
+        else:
+            self.state = self._drive.step(state, self.wheel_speeds, dt)
         self.time_s += dt
         return self.analog_inputs()
 

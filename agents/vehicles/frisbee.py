@@ -136,6 +136,19 @@ class FrisbeeBot(Vehicle):
                 f"vehicle {self.name!r} (FrisbeeBot): the calibration has no curve for {missing}; "
                 "it needs v_left and v_right (wheel speed [m/s] <-> signed PWM)"
             )
+        # Per tick: the two curves straight, no lookups (see actuate()).
+        self._wheels = self._wheel_curves()
+        self._duty_buffer = np.zeros(2)  # [left, right] signed duty of one tick [wire units]
+        self._duty_channel = self.telemetry["wheel_duty"]
+
+    def _wheel_curves(self) -> tuple[Calibration | None, tuple[tuple[str, str, Any], ...]]:
+        calibration = self.calibration
+        if calibration is None:
+            return None, ()
+        return calibration, tuple(
+            (motor, name, calibration.curve(name))
+            for motor, name in zip(("left", "right"), self.input_names, strict=True)
+        )
 
     def setup_devices(self) -> None:
         """The two-motor H-bridge ``drive`` and the ``battery`` divider on A0."""
@@ -154,9 +167,10 @@ class FrisbeeBot(Vehicle):
 
     def record_telemetry(self, k: int, t: float, y: np.ndarray) -> None:
         """Append the staged duties for tick ``k``."""
-        self.telemetry["wheel_duty"].append(
-            k, t, [self.drive.duty("left"), self.drive.duty("right")]
-        )
+        duties = self._duty_buffer
+        duties[0] = self.drive.duty("left")
+        duties[1] = self.drive.duty("right")
+        self._duty_channel.append(k, t, duties)
 
     def read_outputs(self) -> np.ndarray:
         """``[x, y, psi]`` from the pose source (mocap)."""
@@ -165,7 +179,9 @@ class FrisbeeBot(Vehicle):
                 f"vehicle {self.name!r} (FrisbeeBot) has no pose_source: attach the motion "
                 "capture (or a SimulatedMocap) before sensing"
             )
-        pose = np.asarray(self.pose_source.pose(), dtype=np.float64).reshape(-1)
+        pose = self.pose_source.pose()
+        if type(pose) is not np.ndarray or pose.shape != (6,):
+            pose = np.asarray(pose, dtype=np.float64).reshape(-1)
         if pose.shape != (6,):
             raise VehicleError(
                 f"vehicle {self.name!r}: pose_source.pose() must give [x, y, z, roll, pitch, "
@@ -179,12 +195,26 @@ class FrisbeeBot(Vehicle):
 
         Returns the speeds the staged integer duties stand for (quantised by the duty step).
         """
+        calibration, wheels = self._wheels
+        if calibration is not self.calibration:  # replaced since construction: look up again
+            self._wheels = calibration, wheels = self._wheel_curves()
+            if calibration is None:
+                self.to_pwm(self.input_names[0], 0.0)  # raises: no calibration curve
         applied = []
-        drive, to_pwm, to_u = self.drive, self.to_pwm, self.to_u
+        drive = self.drive
         speeds = np.asarray(u, dtype=np.float64).tolist()
-        for motor, name, speed in zip(("left", "right"), self.input_names, speeds, strict=True):
-            duty = drive.actuate(motor, to_pwm(name, speed))
-            applied.append(to_u(name, duty) if duty else 0.0)
+        for (motor, name, curve), speed in zip(wheels, speeds, strict=True):
+            lo, hi = curve.u_range
+            # Inside the table (always, with the default limits): the curve directly;
+            # outside it the calibration clips and reports (vehicle.to_pwm).
+            pwm = curve.pwm_at_scalar(speed) if lo <= speed <= hi else self.to_pwm(name, speed)
+            duty = drive.actuate(motor, pwm)
+            if duty == 0:
+                applied.append(0.0)
+            else:
+                low, high = curve.pwm_range
+                inside = low <= duty <= high
+                applied.append(curve.u_at_scalar(float(duty)) if inside else self.to_u(name, duty))
         return np.array(applied)
 
     def simulated_hardware(
