@@ -184,6 +184,9 @@ def build_hardware(config: AgentConfig) -> AgentHardware:
         initial_state=list(config.initial_state) or None,
         dt=config.dt,
     )
+    calibration = getattr(vehicle, "calibration", None)
+    if calibration is not None:  # the inverse curves now, so that no tick pays for them
+        calibration.prepare_inverse()
     board = None
     if getattr(vehicle, "needs_board", True):
         board = _open_board(config, vehicle)

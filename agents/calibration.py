@@ -211,6 +211,16 @@ class CalibrationCurve:
             self._inverse_cache[pwm] = u
         return u
 
+    def prepare_inverse(self) -> None:
+        """Compute the inverse at every integer PWM of the table now (about 1 ms per 30 values).
+
+        Afterwards :meth:`u_at_scalar` of an integer duty is a lookup on every call, so a
+        control tick never pays for a root search (an agent calls this before tick 0).
+        """
+        low, high = self._pwm_bounds
+        for duty in range(math.ceil(low), math.floor(high) + 1):
+            self.u_at_scalar(float(duty))
+
     def _inverse(self, value: float) -> float:
         roots = self._spline.solve(value, extrapolate=False)
         roots = roots[np.isfinite(roots)]
@@ -299,6 +309,12 @@ class Calibration:
                 f"{self.source or 'calibration'}: no curve for input {name!r}; "
                 f"calibrated inputs: {list(self._curves)}"
             ) from None
+
+    def prepare_inverse(self) -> None:
+        """Precompute ``to_u`` at every integer PWM of every curve (see
+        :meth:`CalibrationCurve.prepare_inverse`): before a run, not during its ticks."""
+        for curve in self._curves.values():
+            curve.prepare_inverse()
 
     def check_names(self, input_names: Sequence[str]) -> None:
         """Raise :class:`CalibrationError` if a curve names an input not in ``input_names``."""

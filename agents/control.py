@@ -97,6 +97,35 @@ class TickInput:
     )
 
 
+def _tick_input(
+    k: int,
+    t: float,
+    dt: float,
+    *,
+    u: np.ndarray,
+    y: np.ndarray,
+    neighbours: Mapping[str, np.ndarray | None],
+) -> TickInput:
+    """``TickInput(k, t, dt, u, y, neighbours)`` for values the ControlModel has checked.
+
+    Fills the instance dictionary directly instead of going through the frozen dataclass'
+    ``__init__`` (one ``object.__setattr__`` per field): the same object, at a third of the
+    cost, which matters once per tick. The result is as frozen as any other TickInput.
+    """
+    tick = _new_object(TickInput)
+    fields = tick.__dict__
+    fields["k"] = k
+    fields["t"] = t
+    fields["dt"] = dt
+    fields["u"] = u
+    fields["y"] = y
+    fields["neighbours"] = neighbours
+    return tick
+
+
+_new_object = object.__new__
+
+
 class Controller(ABC):
     """A discrete-time controller/observer: ``(u_k, y_k, x_hat_k) -> (u_{k+1}, x_hat_{k+1})``.
 
@@ -398,13 +427,8 @@ class ControlModel:
             if neighbours
             else _NO_NEIGHBOURS
         )
-        tick = TickInput(
-            k=self._k,
-            t=tick_time,
-            dt=self.dt,
-            u=_frozen(u),
-            y=_frozen(y),
-            neighbours=frozen_neighbours,
+        tick = _tick_input(
+            self._k, tick_time, self.dt, u=_frozen(u), y=_frozen(y), neighbours=frozen_neighbours
         )
         n_states = self._x_hat.shape[0]
         result = controller.step(tick, self._x_hat.copy(), self._params_view)

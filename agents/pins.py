@@ -599,17 +599,19 @@ class PinManager:
             PinError: pins were bound or released since attach().
             ProtocolError: the reply lacks a sample that was asked for.
         """
-        board = self._require_board()
+        board = self._board
+        if board is None or self._attached_version != self._layout_version:
+            board = self._require_board()  # raises, or accepts an unchanged layout
         reads = self._reads
         reply = board.exchange(dict(self._staged), reads)
         samples = reply.samples
-        missing = [pin for pin in reads if pin not in samples]
-        if missing:
+        try:
+            self._samples = {pin: int(samples[pin]) for pin in reads}
+        except KeyError:
+            missing = [pin_name(pin) for pin in reads if pin not in samples]
             raise ProtocolError(
-                f"board {board.url!r} reply {reply.seq} lacks samples of pins "
-                f"{[pin_name(p) for p in missing]}"
-            )
-        self._samples = {pin: int(samples[pin]) for pin in reads}
+                f"board {board.url!r} reply {reply.seq} lacks samples of pins {missing}"
+            ) from None
         self._last_reply = reply
         return reply
 

@@ -74,6 +74,12 @@ class HBridgeMotor(Actuator):
             self.max_duty[motor] = limit
         self._duty: dict[str, int] = dict.fromkeys(self.motors, 0)
         super().__init__(pins, name, pinout, **options)
+        # Per tick: each motor's (fwd, back, pwm) binders, looked up once.
+        binders = self._binders
+        self._motor_binders: dict[str, tuple[str, str, str]] = {
+            motor: (binders[f"{motor}_fwd"], binders[f"{motor}_back"], binders[f"{motor}_pwm"])
+            for motor in self.motors
+        }
 
     def required_roles(self) -> tuple[str, ...]:
         """``<m>_fwd``, ``<m>_back``, ``<m>_pwm`` for every motor ``m``."""
@@ -110,10 +116,14 @@ class HBridgeMotor(Actuator):
             )
         limit = self.max_duty[motor]
         duty = max(-limit, min(limit, round(value)))
-        write = self.write
-        write(f"{motor}_fwd", 1 if duty > 0 else 0)
-        write(f"{motor}_back", 1 if duty < 0 else 0)
-        write(f"{motor}_pwm", duty if duty >= 0 else -duty)
+        if self._binders:  # bound: straight to the PinManager (it checks every value)
+            fwd, back, pwm = self._motor_binders[motor]
+            write = self.pins.write
+            write(fwd, 1 if duty > 0 else 0)
+            write(back, 1 if duty < 0 else 0)
+            write(pwm, duty if duty >= 0 else -duty)
+        else:  # released: Device.write names the missing role
+            self.write(f"{motor}_fwd", 1 if duty > 0 else 0)
         self._duty[motor] = duty
         return duty
 

@@ -373,7 +373,8 @@ class SimBoard(Board):
                 output, read of a pin that is not a configured input, a pin read twice),
                 BAD_VALUE (value outside the mode's range: 0/1, 0-255, 500-2500 µs).
         """
-        self._require_open()
+        if not self._open:
+            self._require_open()
         seq = self._next_seq()
         self._frame_received()  # like the firmware: a refused request still feeds the watchdog
         if self._config is None:
@@ -393,7 +394,7 @@ class SimBoard(Board):
 
     def _tick_fast_checks(
         self, writes: Mapping[int, int], reads: Sequence[int]
-    ) -> tuple[dict[int, int], list[int]] | None:
+    ) -> tuple[Mapping[int, int], list[int]] | None:
         """The TICK checks for a request that passes them all (the common case), or ``None``.
 
         Every write goes to a configured output with an ``int`` value in its mode's range, every
@@ -417,11 +418,11 @@ class SimBoard(Board):
         for i in range(1, len(read_pins)):
             if read_pins[i] == read_pins[i - 1]:
                 return None
-        return dict(writes), read_pins
+        return writes, read_pins
 
     def _tick_checks(
         self, writes: Mapping[int, int], reads: Sequence[int]
-    ) -> tuple[dict[int, int], list[int]]:
+    ) -> tuple[Mapping[int, int], list[int]]:
         """Check a TICK request like the firmware; return its writes and sorted reads."""
         config = self._config
         if config is None:  # exchange() checked it; keep the type checker calm
