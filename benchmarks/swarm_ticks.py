@@ -83,6 +83,11 @@ class Result:
         return self.summary.ticks + self.summary.late_ticks
 
     @property
+    def on_schedule(self) -> bool:
+        """Every planned tick ran and none was late."""
+        return self.summary.stop_reason == "completed" and self.summary.late_ticks == 0
+
+    @property
     def late_fraction(self) -> float:
         return self.summary.late_ticks / max(1, self.total)
 
@@ -90,11 +95,14 @@ class Result:
         p50, p99 = self.summary.completion_percentiles()
         late = "-" if self.mode == "lockstep" else f"{100 * self.late_fraction:.2f}"
         speed = f"{self.summary.speed:.1f}x" if self.mode == "lockstep" else "-"
-        return (
+        row = (
             f"{self.vehicle:9} {self.mode:9} {self.n:>3} {self.rate_hz:>5g} {self.total:>6} "
             f"{p50 * 1e3:>7.2f} {p99 * 1e3:>7.2f} {late:>6} {self.manager_cpu_s * 1e3:>8.3f} "
             f"{self.recorder_cpu_s * 1e3:>8.3f} {speed:>7}"
         )
+        if self.summary.stop_reason != "completed":  # e.g. an agent starved past its lease
+            row += f"  stopped early: {self.summary.stop_reason}"
+        return row
 
 
 HEADER = (
@@ -177,7 +185,7 @@ def verdicts(results: list[Result]) -> list[str]:
             lines.append(f"{name}: not measured")
         else:
             _, p99 = target.summary.completion_percentiles()
-            met = p99 < 0.010 and target.summary.late_ticks == 0
+            met = p99 < 0.010 and target.on_schedule
             lines.append(
                 f"{name}: {'MET' if met else 'MISSED'} "
                 f"(p99 {p99 * 1e3:.2f} ms, {target.summary.late_ticks} late of {target.total})"
@@ -188,7 +196,7 @@ def verdicts(results: list[Result]) -> list[str]:
             lines.append(f"{name}: not measured")
         else:
             _, p99 = target.summary.completion_percentiles()
-            met = p99 < 0.020 and target.summary.late_ticks == 0
+            met = p99 < 0.020 and target.on_schedule
             lines.append(
                 f"{name}: {'MET' if met else 'MISSED'} "
                 f"(p99 {p99 * 1e3:.2f} ms, {target.summary.late_ticks} late of {target.total})"
@@ -205,12 +213,10 @@ def verdicts(results: list[Result]) -> list[str]:
         if lock is None:
             lines.append(f"{name}: not measured")
         else:
-            met = lock.summary.speed >= 10.0
+            met = lock.summary.speed >= 10.0 and lock.summary.stop_reason == "completed"
             lines.append(f"{name}: {'MET' if met else 'MISSED'} ({lock.summary.speed:.1f}x)")
         kept = [
-            r
-            for r in results
-            if r.vehicle == vehicle and r.mode == "realtime" and r.summary.late_ticks == 0
+            r for r in results if r.vehicle == vehicle and r.mode == "realtime" and r.on_schedule
         ]
         if kept:
             best = max(kept, key=lambda r: (r.n * r.rate_hz, r.n))
