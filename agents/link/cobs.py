@@ -17,20 +17,16 @@ _MAX_BLOCK = 0xFF
 def cobs_encode(data: bytes | bytearray | memoryview) -> bytes:
     """Return the COBS encoding of ``data`` (no 0x00 in the result, no trailing delimiter)."""
     out = bytearray()
-    block = bytearray()
-    for byte in bytes(data):
-        if byte == 0:
-            out.append(len(block) + 1)
-            out += block
-            block.clear()
-            continue
-        block.append(byte)
-        if len(block) == _MAX_BLOCK - 1:
+    # Each run of non-zero bytes between zeros is one block (runs of 254 or more are cut into
+    # 0xFF blocks of 254 bytes, which carry no implied zero); split() does the scanning in C.
+    for run in bytes(data).split(b"\x00"):
+        start = 0
+        while len(run) - start >= _MAX_BLOCK - 1:
             out.append(_MAX_BLOCK)
-            out += block
-            block.clear()
-    out.append(len(block) + 1)
-    out += block
+            out += run[start:start + _MAX_BLOCK - 1]
+            start += _MAX_BLOCK - 1
+        out.append(len(run) - start + 1)
+        out += run[start:]
     return bytes(out)
 
 
@@ -44,7 +40,28 @@ def cobs_decode(encoded: bytes | bytearray | memoryview) -> bytes:
     src = bytes(encoded)
     if not src:
         raise CobsDecodeError("COBS frame is empty (expected at least one code byte)")
+    if 0 in src:
+        _raise_zero(src)
     out = bytearray()
+    index = 0
+    end = len(src)
+    while index < end:
+        code = src[index]
+        block_end = index + code
+        if block_end > end:
+            raise CobsDecodeError(
+                f"COBS code byte {code} at offset {index} points past the end of the "
+                f"{end}-byte frame"
+            )
+        out += src[index + 1 : block_end]
+        index = block_end
+        if code != _MAX_BLOCK and index < end:
+            out.append(0)
+    return bytes(out)
+
+
+def _raise_zero(src: bytes) -> None:
+    """Raise the CobsDecodeError for the first 0x00 of ``src`` (as a code byte or in a block)."""
     index = 0
     end = len(src)
     while index < end:
@@ -57,11 +74,7 @@ def cobs_decode(encoded: bytes | bytearray | memoryview) -> bytes:
                 f"COBS code byte {code} at offset {index} points past the end of the "
                 f"{end}-byte frame"
             )
-        block = src[index + 1 : block_end]
-        if 0 in block:
+        if 0 in src[index + 1 : block_end]:
             raise CobsDecodeError(f"COBS frame has a 0x00 inside the block at offset {index}")
-        out += block
         index = block_end
-        if code != _MAX_BLOCK and index < end:
-            out.append(0)
-    return bytes(out)
+    raise CobsDecodeError("COBS frame has a 0x00")  # not reached: the caller found one

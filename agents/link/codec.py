@@ -23,7 +23,9 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Callable, Sequence
+import struct
+from binascii import crc_hqx
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -40,7 +42,7 @@ from hilswarm.agents.link.board import (
     PinMode,
 )
 from hilswarm.agents.link.cobs import cobs_decode, cobs_encode
-from hilswarm.agents.link.crc import crc16_bytes, crc16_ccitt_false
+from hilswarm.agents.link.crc import CRC16_INIT, crc16_bytes
 
 _log = logging.getLogger(__name__)
 
@@ -377,6 +379,66 @@ def encode_message(msg: Message) -> bytes:
     return frame_payload(encode_payload(msg))
 
 
+@dataclass(frozen=True, slots=True)
+class TickLayout:
+    """The wire layout of TICK requests that write and read the same pins (one configuration).
+
+    Built once per (written pins, read pins) and reused every tick: :meth:`payload` is a single
+    :meth:`struct.Struct.pack` instead of a message object per tick.
+
+    Attributes:
+        digital_pins: written DIGITAL_OUT pins (their levels travel in ``dout``).
+        digital_mask: ``dout`` bits of ``digital_pins``.
+        wide_pins: written PWM and SERVO pins, ascending (wire order).
+        rmask: bits of the sampled pins.
+        read_pins: sampled pins, ascending without duplicates (the order of the reply's samples).
+        packer: ``type seq dout:u24 rmask:u24 (pin value)...`` with u8 PWM and u16 servo values.
+    """
+
+    digital_pins: tuple[int, ...]
+    digital_mask: int
+    wide_pins: tuple[int, ...]
+    rmask: int
+    read_pins: tuple[int, ...]
+    packer: struct.Struct
+
+    @classmethod
+    def build(cls, modes: Mapping[int, int], write_pins: Iterable[int],
+              read_pins: Iterable[int]) -> TickLayout | None:
+        """Layout for ``modes`` (pin -> PinMode); None if a written pin is not an output or a
+        read pin does not fit the 24-bit mask (the caller reports those)."""
+        digital: list[int] = []
+        wide: list[int] = []
+        for pin in write_pins:
+            mode = modes.get(pin, PinMode.UNUSED)
+            if mode == PinMode.DIGITAL_OUT:
+                digital.append(pin)
+            elif mode in (PinMode.PWM, PinMode.SERVO):
+                wide.append(pin)
+            else:
+                return None
+        reads = sorted(set(read_pins))
+        if any(not 0 <= pin < PIN_MASK_BITS for pin in reads):
+            return None
+        wide.sort()
+        fields = "".join("BB" if modes[pin] == PinMode.PWM else "BH" for pin in wide)
+        return cls(tuple(digital), sum(1 << pin for pin in digital), tuple(wide),
+                   sum(1 << pin for pin in reads), tuple(reads),
+                   struct.Struct("<BBHBHB" + fields))
+
+    def payload(self, seq: int, dout: int, writes: Mapping[int, int]) -> bytes:
+        """TICK payload with ``dout`` and the values of ``wide_pins`` taken from ``writes``.
+
+        Raises:
+            struct.error: a value does not fit its field (u8 PWM duty, u16 servo pulse).
+        """
+        values: list[int] = [MsgType.TICK, seq, dout & 0xFFFF, dout >> 16,
+                             self.rmask & 0xFFFF, self.rmask >> 16]
+        for pin in self.wide_pins:
+            values += (pin, writes[pin])
+        return self.packer.pack(*values)
+
+
 # --------------------------------------------------------------------------- parsing
 
 
@@ -438,6 +500,8 @@ def parse_payload(payload: bytes, *, modes: Sequence[int] | None = None) -> Mess
     if len(payload) < 2:
         raise WireFormatError(f"payload of {len(payload)} bytes has no type and seq",
                               code=ErrorCode.BAD_LENGTH, detail=0)
+    if payload[0] == MsgType.TICK_REPLY and len(payload) >= 7 and not (len(payload) - 7) % 2:
+        return parse_tick_reply(payload)  # the reply of every control tick: the short way
     raw_type, seq, body = payload[0], payload[1], bytes(payload[2:])
     if raw_type not in MsgType._value2member_map_:
         raise WireFormatError(f"unknown message type {raw_type:#04x}",
@@ -456,6 +520,19 @@ def parse_payload(payload: bytes, *, modes: Sequence[int] | None = None) -> Mess
         _expect_len(t, body, 2)
         return SetIdMsg(seq, int.from_bytes(body, "little"))
     return _parse_reply(t, seq, body)
+
+
+def parse_tick_reply(payload: bytes | bytearray) -> TickReplyMsg:
+    """Decode a TICK_REPLY payload whose type and length (7 + 2n bytes) the caller checked."""
+    count = (len(payload) - 7) >> 1
+    samples = _SAMPLES[count].unpack_from(payload, 7) if count < len(_SAMPLES) else tuple(
+        int.from_bytes(payload[i:i + 2], "little") for i in range(7, len(payload), 2))
+    return TickReplyMsg(payload[1], payload[2], _U32.unpack_from(payload, 3)[0], samples)
+
+
+#: Little-endian u32, and n little-endian u16 samples for every possible sample count.
+_U32 = struct.Struct("<I")
+_SAMPLES = tuple(struct.Struct(f"<{n}H") for n in range(PIN_MASK_BITS + 1))
 
 
 def _parse_reply(t: MsgType, seq: int, body: bytes) -> Message:
@@ -617,8 +694,15 @@ class FrameDecoder:
 
     def feed(self, data: bytes | bytearray | memoryview) -> list[bytes]:
         """Consume ``data``; return the payloads (type, seq, body; no CRC) completed by it."""
-        out: list[bytes] = []
         chunk = bytes(data)
+        if 0 not in chunk:  # the middle of a frame (bytes trickle in at line speed)
+            if not self._overflow:
+                self._buffer += chunk
+                if len(self._buffer) > MAX_ENCODED:
+                    self._overflow = True
+                    self._buffer.clear()
+            return []
+        out: list[bytes] = []
         start = 0
         while start <= len(chunk):
             end = chunk.find(b"\x00", start)
@@ -652,7 +736,7 @@ class FrameDecoder:
             self._drop(DropReason.SHORT)
         elif len(frame) > MAX_FRAME:
             self._drop(DropReason.TOO_LONG)
-        elif crc16_ccitt_false(frame[:-CRC_SIZE]) != int.from_bytes(frame[-CRC_SIZE:], "little"):
+        elif crc_hqx(frame[:-CRC_SIZE], CRC16_INIT) != frame[-2] | frame[-1] << 8:
             self._drop(DropReason.CRC)
         else:
             self.counters.frames += 1
