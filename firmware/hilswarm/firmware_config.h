@@ -14,7 +14,7 @@ namespace config {
 
 // Firmware version (reported by HELLO; separate from wire::kProtocolVersion).
 const uint8_t kFirmwareMajor = 1;
-const uint8_t kFirmwareMinor = 0;
+const uint8_t kFirmwareMinor = 1;
 
 const uint32_t kBaud = HILSWARM_BAUD;
 
@@ -23,6 +23,10 @@ const uint32_t kBaud = HILSWARM_BAUD;
 // from now instead of running a burst of catch-up periods.
 const uint32_t kPeriodUs = 1000;
 const uint32_t kMaxLagPeriods = 10;
+
+// Received bytes handled per loop() at most (16 bytes = 1.4 ms of a busy line at 115200 baud)
+// before the periodic work gets its turn.
+const uint8_t kMaxBytesPerLoop = 16;
 
 // AVR hardware watchdog timeout (reset by loop()).
 const uint8_t kHwWatchdogTimeout = WDTO_250MS;

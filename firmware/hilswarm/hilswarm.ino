@@ -16,6 +16,20 @@ hilswarm::FrameParser parser;
 hilswarm::FrameBuilder builder;
 hilswarm::Engine engine({hilswarm::config::kFirmwareMajor, hilswarm::config::kFirmwareMinor});
 uint32_t next_periodic_us = 0;
+// The reply prepared for the frame being received, should it turn out to be `payload_length`
+// bytes long (see on_data_byte).
+struct PreparedReply {
+  bool built;            // engine.prepare() built it into `builder`
+  const uint8_t* frame;  // its wire frame once stamped and framed; nullptr: not yet
+  size_t frame_length;
+  uint8_t payload_length;
+};
+PreparedReply prepared = {false, nullptr, 0, 0};
+// Payload length of the last TICK answered: a host sends the same kind of TICK every tick.
+uint8_t last_tick_length = 0;
+// Board time of the frame being received [us] (TICK_REPLY's board_time_us): when its last byte
+// before the delimiter was in.
+uint32_t frame_time_us = 0;
 
 void send_reply() {
   size_t n = 0;
@@ -23,22 +37,83 @@ void send_reply() {
   Serial.write(frame, n);
 }
 
+void drop_prepared() {
+  prepared.built = false;
+  prepared.frame = nullptr;
+  engine.cancel_prepared();
+}
+
+bool prepare(uint8_t payload_length, uint32_t now_us) {
+  prepared.frame = nullptr;
+  prepared.built = engine.prepare(parser.payload(), payload_length, now_us, builder);
+  prepared.payload_length = payload_length;
+  return prepared.built;
+}
+
+// A byte arrives every ~87 us at 115200 baud and the CPU is idle in between, so a TICK's reply
+// is ready before its delimiter arrives and the delimiter only commits it: it is built (checked,
+// sampled) as soon as the payload is as long as the last TICK's (the CRC bytes follow), and
+// stamped with the board time and framed (CRC, COBS) when the bytes so far are a whole CRC-valid
+// frame, one byte time before the delimiter. (A first TICK, or one of a new length, is built
+// then too.)
+void on_data_byte() {
+  const uint8_t decoded = parser.decoded_length();
+  if (parser.could_end_here()) {
+    frame_time_us = micros();
+    const uint8_t n = parser.candidate_length();
+    if (prepared.built && prepared.payload_length == n) {
+      hilswarm::Engine::restamp(frame_time_us, builder);
+    } else if (!prepare(n, frame_time_us)) {
+      return;
+    }
+    prepared.frame = builder.finish(&prepared.frame_length);
+  } else if (decoded == last_tick_length && parser.payload()[0] == hilswarm::wire::kTick) {
+    if (!prepared.built || prepared.payload_length != decoded) prepare(decoded, 0);
+  } else if (prepared.built && decoded >= prepared.payload_length + 2) {
+    drop_prepared();  // the frame went on past the prepared payload and its CRC
+  }
+}
+
+void on_frame() {
+  const uint8_t* payload = parser.payload();
+  const uint8_t length = parser.payload_length();
+  if (prepared.frame != nullptr && prepared.payload_length == length &&
+      engine.commit(payload, length, millis())) {
+    Serial.write(prepared.frame, prepared.frame_length);
+  } else {
+    engine.respond(payload, length, millis(), frame_time_us, builder);
+    send_reply();
+  }
+  prepared.built = false;
+  prepared.frame = nullptr;
+  if (payload[0] == hilswarm::wire::kTick) last_tick_length = length;
+  // The TICK's outputs are driven while the reply's first byte is on the wire: the writes add
+  // nothing to the round trip.
+  engine.apply_pending();
+}
+
 void on_byte(uint8_t byte) {
   switch (parser.feed(byte)) {
     case hilswarm::FrameParser::kFrame:
-      engine.handle(parser.payload(), parser.payload_length(), millis(), micros(), builder);
-      send_reply();
+      on_frame();
       break;
     case hilswarm::FrameParser::kTooLong:
+      drop_prepared();
       engine.frame_too_long(builder);
       send_reply();
       break;
     case hilswarm::FrameParser::kTooShort:
     case hilswarm::FrameParser::kBadCobs:
     case hilswarm::FrameParser::kBadCrc:
+      drop_prepared();
       engine.rx_error();
       break;
     case hilswarm::FrameParser::kNone:
+      if (byte != hilswarm::wire::kDelimiter) {
+        on_data_byte();
+      } else {
+        drop_prepared();  // an idle delimiter
+      }
       break;
   }
 }
@@ -66,8 +141,10 @@ void setup() {
 
 void loop() {
   wdt_reset();
-  // Drain every byte that is waiting now (bounded: bytes arriving meanwhile wait one loop).
-  for (int pending = Serial.available(); pending > 0; --pending) {
+  // Handle the bytes waiting, and those arriving meanwhile (a delimiter that arrives while a reply
+  // is being prepared is handled at once), at most kMaxBytesPerLoop per loop so the periodic work
+  // still runs.
+  for (uint8_t n = 0; n < hilswarm::config::kMaxBytesPerLoop && Serial.available() > 0; ++n) {
     const int c = Serial.read();
     if (c < 0) break;
     on_byte(static_cast<uint8_t>(c));

@@ -4,25 +4,29 @@ namespace hilswarm {
 
 size_t cobs_encode(const uint8_t* in, size_t len, uint8_t* out, size_t out_cap) {
   if (out_cap < cobs_max_encoded(len)) return 0;
-  size_t code_at = 0;  // where the current block's code byte goes
-  size_t o = 1;
+  // Pointers, not indices: this runs for every reply byte before the reply can start, and
+  // 16-bit index arithmetic costs the AVR several instructions per byte.
+  const uint8_t* const end = in + len;
+  uint8_t* code_at = out;  // where the current block's code byte goes
+  uint8_t* o = out + 1;
   uint8_t code = 1;
-  for (size_t i = 0; i < len; ++i) {
-    if (in[i] == 0) {
-      out[code_at] = code;
+  while (in != end) {
+    const uint8_t byte = *in++;
+    if (byte == 0) {
+      *code_at = code;
       code_at = o++;
       code = 1;
     } else {
-      out[o++] = in[i];
+      *o++ = byte;
       if (++code == 0xFF) {
-        out[code_at] = code;
+        *code_at = code;
         code_at = o++;
         code = 1;
       }
     }
   }
-  out[code_at] = code;
-  return o;
+  *code_at = code;
+  return static_cast<size_t>(o - out);
 }
 
 void CobsDecoder::emit(uint8_t byte) {

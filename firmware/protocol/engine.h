@@ -25,9 +25,38 @@ class Engine {
   void begin(bool hw_watchdog_reset, uint32_t now_ms);
 
   // Answers one CRC-valid payload (type, seq, body): exactly one reply or ERROR is built into
-  // `out`. Any valid frame feeds the link watchdog (after checking it for a trip).
+  // `out`, and a TICK's writes are applied. Any valid frame feeds the link watchdog (after
+  // checking it for a trip). Same as respond() followed by apply_pending().
   void handle(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
               FrameBuilder& out);
+
+  // handle() in two halves, so the firmware can start sending the reply before it drives the
+  // outputs (the writes then cost no turnaround time: they are done long before the reply's last
+  // byte has left). respond() does everything but a valid TICK's writes: it validates the TICK,
+  // takes its samples and builds its reply, and remembers where the writes are. apply_pending()
+  // applies them; it must be called before `payload` changes (the firmware calls it right after
+  // queueing the reply, before reading the next byte). Does nothing if there are none.
+  void respond(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
+               FrameBuilder& out);
+  void apply_pending();
+
+  // A TICK's reply prepared before its frame is known to be complete (the firmware calls this
+  // in the byte times before the delimiter, see hilswarm.ino). prepare() builds
+  // into `out` exactly the reply respond() would build for `payload` at `now_us` if the status
+  // does not change meanwhile, and changes nothing else; false (and `out` undefined) for
+  // anything but a TICK that passes every check. commit() is called once the frame is
+  // complete: if it is the prepared payload and the status is still the same after the link
+  // watchdog check, it does the rest of what respond() does (feeds the watchdog, clears the
+  // reported events, remembers the writes) and returns true: the prepared reply is the answer.
+  // Otherwise it returns false having done at most that watchdog check, and the caller answers
+  // with respond() (which then builds the same reply it would have built anyway).
+  bool prepare(const uint8_t* payload, uint8_t len, uint32_t now_us, FrameBuilder& out);
+  bool commit(const uint8_t* payload, uint8_t len, uint32_t now_ms);
+  // Sets the board time of the reply prepare() built in `out` to `now_us` (before finish()): the
+  // firmware prepares a TICK's reply early and stamps it when the frame's last byte is in.
+  // (TICK_REPLY payload: type, seq, status, board_time_us at offset 3.)
+  static void restamp(uint32_t now_us, FrameBuilder& out) { out.patch_u32(3, now_us); }
+  void cancel_prepared() { prepared_payload_ = nullptr; }
 
   // A frame longer than the maximum arrived: ERROR FRAME_TOO_LONG with seq 0 into `out`.
   void frame_too_long(FrameBuilder& out);
@@ -49,15 +78,29 @@ class Engine {
   void on_config(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuilder& out);
   void on_tick(uint8_t seq, const uint8_t* body, uint8_t len, uint32_t now_us,
                FrameBuilder& out);
+  void build_tick_reply(uint8_t seq, const uint8_t* body, uint8_t status, uint32_t now_us,
+                        FrameBuilder& out);
   void on_estop(uint8_t seq, uint8_t body_len, FrameBuilder& out);
   void on_set_id(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuilder& out);
   void error(uint8_t seq, uint8_t code, uint8_t detail, FrameBuilder& out);
   void error(uint8_t seq, RequestError e, FrameBuilder& out) { error(seq, e.code, e.detail, out); }
   uint8_t take_status();   // current flags; clears the one-shot events
   void drive_safe();
+  void derive_pin_sets();  // sets_, out_pins_, n_out_ from config_ (after every change)
 
   FirmwareVersion version_;
   PinConfig config_[wire::kPinCount] = {};
+  // Derived from config_ once per CONFIG for the TICK hot path.
+  PinSets sets_ = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+  uint8_t out_pins_[wire::kPinCount] = {};  // DIGITAL_OUT pins, ascending
+  uint8_t n_out_ = 0;
+  // The validated TICK body whose writes respond() left for apply_pending() (nullptr: none).
+  const uint8_t* pending_body_ = nullptr;
+  uint8_t pending_len_ = 0;
+  // The payload prepare() answered (nullptr: none), its length and the status it reported.
+  const uint8_t* prepared_payload_ = nullptr;
+  uint8_t prepared_len_ = 0;
+  uint8_t prepared_flags_ = 0;
   uint8_t flags_ = 0;
   uint16_t watchdog_ms_ = 0;
   uint32_t last_rx_ms_ = 0;

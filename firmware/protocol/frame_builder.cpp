@@ -5,34 +5,9 @@
 
 namespace hilswarm {
 
-void FrameBuilder::begin(uint8_t type, uint8_t seq) {
-  len_ = 0;
-  overflow_ = false;
-  put_u8(type);
-  put_u8(seq);
-}
-
-void FrameBuilder::put_u8(uint8_t v) {
-  if (len_ < wire::kMaxPayload) {
-    payload_[len_++] = v;
-  } else {
-    overflow_ = true;
-  }
-}
-
-void FrameBuilder::put_u16(uint16_t v) {
-  put_u8(static_cast<uint8_t>(v));
-  put_u8(static_cast<uint8_t>(v >> 8));
-}
-
 void FrameBuilder::put_u24(uint32_t v) {
   put_u16(static_cast<uint16_t>(v));
   put_u8(static_cast<uint8_t>(v >> 16));
-}
-
-void FrameBuilder::put_u32(uint32_t v) {
-  put_u16(static_cast<uint16_t>(v));
-  put_u16(static_cast<uint16_t>(v >> 16));
 }
 
 const uint8_t* FrameBuilder::finish(size_t* wire_len) {

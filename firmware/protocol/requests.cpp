@@ -119,42 +119,67 @@ RequestError check_config(const uint8_t* body, uint8_t len, PinConfig* config,
   return kOk;
 }
 
+PinSets pin_sets(const PinConfig* config) {
+  PinSets sets = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
+  for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
+    const uint8_t mode = config[pin].mode;
+    const uint8_t bit = pin_bit(pin);
+    if (mode == wire::kModeDigitalOut) sets.dout[pin / 8] |= bit;
+    if (is_input_mode(mode)) sets.input[pin / 8] |= bit;
+    if (mode == wire::kModePwm || mode == wire::kModeServo) sets.wide[pin / 8] |= bit;
+    if (mode == wire::kModeServo) sets.servo[pin / 8] |= bit;
+  }
+  return sets;
+}
+
+namespace {
+
+// First pin of `mask` (u24, a byte at a time) that is not in `allowed`; kPinMaskBits if none.
+// The masks are compared a byte at a time; only a faulty request walks the bits.
+uint8_t first_pin_outside(const uint8_t* mask, const uint8_t* allowed) {
+  for (uint8_t byte = 0; byte < 3; ++byte) {
+    uint8_t bad = static_cast<uint8_t>(mask[byte] & ~allowed[byte]);
+    if (bad == 0) continue;
+    uint8_t pin = static_cast<uint8_t>(byte * 8);
+    for (; !(bad & 1U); bad = static_cast<uint8_t>(bad >> 1)) ++pin;
+    return pin;
+  }
+  return wire::kPinMaskBits;
+}
+
+}  // namespace
+
 RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* config) {
+  return check_tick(body, len, config, pin_sets(config));
+}
+
+RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* /*config*/,
+                        const PinSets& sets) {
   if (len < kTickHeader) return fail(wire::kErrBadLength, wire::kTick);
-  // The u24 masks are walked a byte at a time, shifting the byte right one pin per step:
-  // `1UL << pin` is a loop of `pin` steps on the AVR (no barrel shifter) and made this check
-  // cost ~340 us per TICK.
-  for (uint8_t pin = 0; pin < wire::kPinMaskBits; pin = static_cast<uint8_t>(pin + 8)) {
-    uint8_t bits = body[pin / 8];
-    for (uint8_t p = pin; bits != 0; ++p, bits = static_cast<uint8_t>(bits >> 1)) {
-      if ((bits & 1U) && (p >= wire::kPinCount || config[p].mode != wire::kModeDigitalOut)) {
-        return fail(wire::kErrBadPin, p);
-      }
-    }
-  }
-  for (uint8_t pin = 0; pin < wire::kPinMaskBits; pin = static_cast<uint8_t>(pin + 8)) {
-    uint8_t bits = body[3 + pin / 8];
-    for (uint8_t p = pin; bits != 0; ++p, bits = static_cast<uint8_t>(bits >> 1)) {
-      if ((bits & 1U) && (p >= wire::kPinCount || !is_input_mode(config[p].mode))) {
-        return fail(wire::kErrBadPin, p);
-      }
-    }
-  }
+  // Every dout bit, then every rmask bit (the first offending pin in ascending order).
+  uint8_t pin = first_pin_outside(body, sets.dout);
+  if (pin != wire::kPinMaskBits) return fail(wire::kErrBadPin, pin);
+  pin = first_pin_outside(body + 3, sets.input);
+  if (pin != wire::kPinMaskBits) return fail(wire::kErrBadPin, pin);
   uint8_t i = kTickHeader;
-  bool written[wire::kPinCount] = {};  // a flag per pin: no 32-bit variable shifts on the AVR
+  uint8_t written[3] = {0, 0, 0};  // pins written so far (one write per pin)
   while (i < len) {
-    const uint8_t pin = body[i];
-    const uint8_t mode = pin < wire::kPinCount ? config[pin].mode : wire::kModeUnused;
-    if (mode != wire::kModePwm && mode != wire::kModeServo) return fail(wire::kErrBadPin, pin);
-    if (written[pin]) return fail(wire::kErrBadPin, pin);  // one write per pin
-    written[pin] = true;
-    const uint8_t width = mode == wire::kModePwm ? 1 : 2;
-    if (static_cast<uint16_t>(i) + 1 + width > len) return fail(wire::kErrBadLength, wire::kTick);
-    if (mode == wire::kModeServo) {
+    pin = body[i];
+    if (pin >= wire::kPinMaskBits) return fail(wire::kErrBadPin, pin);
+    const uint8_t byte = static_cast<uint8_t>(pin / 8);
+    const uint8_t bit = pin_bit(pin);
+    if (!(sets.wide[byte] & bit)) return fail(wire::kErrBadPin, pin);  // not PWM or SERVO
+    if (written[byte] & bit) return fail(wire::kErrBadPin, pin);
+    written[byte] |= bit;
+    if (sets.servo[byte] & bit) {
+      if (static_cast<uint16_t>(i) + 3 > len) return fail(wire::kErrBadLength, wire::kTick);
       const uint16_t us = read_u16(body + i + 1);
       if (us < wire::kServoMinUs || us > wire::kServoMaxUs) return fail(wire::kErrBadValue, pin);
+      i = static_cast<uint8_t>(i + 3);
+    } else {
+      if (static_cast<uint16_t>(i) + 2 > len) return fail(wire::kErrBadLength, wire::kTick);
+      i = static_cast<uint8_t>(i + 2);
     }
-    i = static_cast<uint8_t>(i + 1 + width);
   }
   return kOk;
 }

@@ -44,8 +44,31 @@ bool is_input_mode(uint8_t mode);
 RequestError check_config(const uint8_t* body, uint8_t len, PinConfig* config,
                           uint16_t* watchdog_ms, uint8_t* n_entries);
 
+// The pin sets a TICK is checked and applied against, as u24 masks stored a byte at a time
+// (bit i of byte i / 8 = pin i; pins 20-23 never set). Derived from the configuration once per
+// CONFIG so that a TICK costs a few byte operations instead of a walk over every pin.
+struct PinSets {
+  uint8_t dout[3];   // DIGITAL_OUT pins
+  uint8_t input[3];  // DIGITAL_IN, DIGITAL_IN_PULLUP and ANALOG_IN pins
+  uint8_t wide[3];   // PWM and SERVO pins (written by (pin, value) pairs)
+  uint8_t servo[3];  // SERVO pins (u16 values)
+};
+
+// The pin sets of `config` (kPinCount entries).
+PinSets pin_sets(const PinConfig* config);
+
+// Bit of pin `pin` inside its byte of a u24 pin mask: 1 << (pin % 8), from a table (a variable
+// shift is a loop on the AVR).
+inline uint8_t pin_bit(uint8_t pin) {
+  static const uint8_t kBits[8] = {0x01, 0x02, 0x04, 0x08, 0x10, 0x20, 0x40, 0x80};
+  return kBits[pin & 7U];
+}
+
 // Validates a TICK body against the current configuration (kPinCount entries).
 RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* config);
+// The same, with the configuration's pin sets already derived (the firmware's hot path).
+RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* config,
+                        const PinSets& sets);
 
 // Little-endian readers.
 inline uint16_t read_u16(const uint8_t* p) {
