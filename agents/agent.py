@@ -16,9 +16,11 @@ board/plant advance one period (``exchange``), senses ``y_k`` and publishes it â
 trip per tick. Tick 0 only senses ``y_0``. ``u_k`` is the input held over ``[t_{k-1}, t_k)``
 and is recorded with ``t = t_{k-1}``; ``y_k`` is recorded with ``t = t_k = k * dt``.
 
-Everything the agent reacts to arrives through one queue drained by the main thread: bus
-callbacks only enqueue (no work on Zenoh's threads), so ticks, neighbour outputs, parameter
-changes and commands are handled in arrival order, between ticks, without locks.
+Ticks, parameter changes and commands arrive through one queue drained by the main thread
+(bus callbacks only enqueue them), so they are handled in arrival order, between ticks.
+Neighbours' outputs, several per tick, are stored by their bus callback directly (decoded,
+under a lock) instead of costing a thread hop each; the main thread is woken for them only
+while a tick waits for a late one.
 """
 
 from __future__ import annotations
@@ -232,7 +234,7 @@ def _open_board(config: AgentConfig, vehicle: Any) -> Any:
 # ---------------------------------------------------------------------------------------------
 
 # Queue items: (kind, payload...). Kinds are small ints for speed.
-_TICK, _NEIGHBOUR, _CONTROL, _SET, _MANAGER_GONE, _SIGNAL = range(6)
+_TICK, _NEIGHBOUR, _CONTROL, _SET, _MANAGER_GONE, _SIGNAL, _NEIGHBOUR_IN = range(7)
 #: No agent missing (the common tick).
 _NOBODY: frozenset[str] = frozenset()
 
@@ -274,6 +276,10 @@ class Agent:
         self._y: np.ndarray | None = None
         self._neighbour_y: dict[str, dict[int, np.ndarray]] = {n: {} for n in config.neighbours}
         self._received_from: set[str] = set()
+        # Neighbours' outputs are stored by the bus callback itself (no thread hop per message);
+        # this lock guards _neighbour_y, _received_from and _waiting_for_neighbours.
+        self._neighbour_lock = threading.Lock()
+        self._waiting_for_neighbours = False
         self._stop_requested = ""
         self._manager_seen = threading.Event()
         self._queue_replay: list[tuple[Any, ...]] = []
@@ -368,8 +374,7 @@ class Agent:
                 session.declare_subscriber(
                     keys.y(neighbour),
                     zenoh.handlers.Callback(
-                        lambda s, n=neighbour: put((_NEIGHBOUR, n, s.payload.to_bytes())),
-                        indirect=False,
+                        lambda s, n=neighbour: self._on_neighbour_sample(n, s), indirect=False
                     ),
                 )
             )
@@ -479,8 +484,32 @@ class Agent:
         self.hardware = hardware
         self._u = np.zeros(int(hardware.vehicle.n_inputs))
 
+    def _on_neighbour_sample(self, name: str, sample: zenoh.Sample) -> None:
+        """Bus callback (a Zenoh thread): store a neighbour's y message right away.
+
+        Only a main thread that is waiting for neighbours gets a wake-up item; a malformed
+        message goes to the main thread, which fails on it as on any bad input.
+        """
+        payload = sample.payload.to_bytes()
+        with self._neighbour_lock:
+            try:
+                self._store_neighbour(name, payload)
+            except bus.BusMessageError:
+                stored = False
+            else:
+                stored = True
+            wake = self._waiting_for_neighbours
+        if not stored:
+            self._queue.put((_NEIGHBOUR, name, payload))
+        elif wake:
+            self._queue.put((_NEIGHBOUR_IN, name))
+
     def receive_neighbour(self, name: str, payload: bytes) -> None:
-        """Store a neighbour's y message (what the main loop does with each one it drains)."""
+        """Store a neighbour's y message (what the bus callback does with each one)."""
+        with self._neighbour_lock:
+            self._store_neighbour(name, payload)
+
+    def _store_neighbour(self, name: str, payload: bytes) -> None:
         k, _t, values = bus.decode_vector(payload)
         values.flags.writeable = False  # shared with the controller: read-only, no copy
         history = self._neighbour_y[name]
@@ -493,42 +522,60 @@ class Agent:
         """Neighbours' y_{k_prev}; waits (bounded) for those the manager reports in."""
         result: dict[str, np.ndarray | None] = {}
         waiting = []
-        for name in self.config.neighbours:
-            history = self._neighbour_y[name]
-            if k_prev in history:
-                result[name] = history[k_prev]
-            elif name in missing:
-                result[name] = None
-            elif stale_ok:
-                older = [k for k in history if k < k_prev]
-                result[name] = history[max(older)] if older else None
-            else:
-                waiting.append(name)
-        if waiting:
-            deadline = self._clock() + NEIGHBOUR_WAIT_S
-            while waiting:
-                remaining = deadline - self._clock()
-                if remaining <= 0:
-                    logger.warning(
-                        "%s: tick %d: no output from %s", self.config.name, k_prev + 1, waiting
-                    )
-                    for name in waiting:
-                        result[name] = None
-                    break
-                try:
-                    item = self._queue.get(timeout=remaining)
-                except queue.Empty:
-                    continue
-                if item[0] == _NEIGHBOUR:
-                    self.receive_neighbour(item[1], item[2])
-                    if item[1] in waiting and k_prev in self._neighbour_y[item[1]]:
-                        waiting.remove(item[1])
-                        result[item[1]] = self._neighbour_y[item[1]][k_prev]
-                elif item[0] == _CONTROL:
-                    self._on_control(item[1])
+        with self._neighbour_lock:
+            for name in self.config.neighbours:
+                history = self._neighbour_y[name]
+                if k_prev in history:
+                    result[name] = history[k_prev]
+                elif name in missing:
+                    result[name] = None
+                elif stale_ok:
+                    older = [k for k in history if k < k_prev]
+                    result[name] = history[max(older)] if older else None
                 else:
-                    self._queue_replay.append(item)
+                    waiting.append(name)
+            self._waiting_for_neighbours = bool(waiting)
+        if waiting:
+            try:
+                self._wait_for_neighbours(k_prev, waiting, result)
+            finally:
+                with self._neighbour_lock:
+                    self._waiting_for_neighbours = False
         return result
+
+    def _wait_for_neighbours(
+        self, k_prev: int, waiting: list[str], result: dict[str, np.ndarray | None]
+    ) -> None:
+        """Wait (bounded) until every name in ``waiting`` has sent y_{k_prev}; fill ``result``."""
+        deadline = self._clock() + NEIGHBOUR_WAIT_S
+        while waiting:
+            remaining = deadline - self._clock()
+            if remaining <= 0:
+                logger.warning(
+                    "%s: tick %d: no output from %s", self.config.name, k_prev + 1, waiting
+                )
+                for name in waiting:
+                    result[name] = None
+                return
+            try:
+                item = self._queue.get(timeout=remaining)
+            except queue.Empty:
+                continue
+            kind = item[0]
+            if kind == _NEIGHBOUR:
+                self.receive_neighbour(item[1], item[2])
+            elif kind == _CONTROL:
+                self._on_control(item[1])
+                continue
+            elif kind != _NEIGHBOUR_IN:
+                self._queue_replay.append(item)
+                continue
+            with self._neighbour_lock:
+                for name in list(waiting):
+                    history = self._neighbour_y[name]
+                    if k_prev in history:
+                        waiting.remove(name)
+                        result[name] = history[k_prev]
 
     def _latest_tick(self, payload: bytes) -> tuple[bus.TickMessage, int]:
         """Decode a tick; if more ticks are queued (we fell behind), keep only the newest."""
@@ -546,7 +593,7 @@ class Agent:
                 self.receive_neighbour(item[1], item[2])
             elif item[0] == _CONTROL:
                 self._on_control(item[1])
-            else:
+            elif item[0] != _NEIGHBOUR_IN:  # a wake-up nobody waits for any more
                 self._queue_replay.append(item)
         return tick, skipped
 
@@ -722,7 +769,7 @@ class Agent:
 
     def _shutdown(self) -> None:
         if self.lifecycle.state_id == "safe":
-            received = sorted(self._received_from)
+            received = sorted(self.received_from)
             self.lifecycle.stop(detail=f"received from: {', '.join(received) or '-'}")
         hw = self.hardware
         if hw is not None and hw.board is not None:
@@ -743,7 +790,8 @@ class Agent:
     @property
     def received_from(self) -> frozenset[str]:
         """Agents whose output this agent actually received (neighbour-only delivery check)."""
-        return frozenset(self._received_from)
+        with self._neighbour_lock:
+            return frozenset(self._received_from)
 
 
 #: Name of the instance manager's liveliness token (``hilswarm/<exp>/alive/_manager``).
