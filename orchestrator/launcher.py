@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from types import TracebackType
 
 from hilswarm.agents.agent import AgentConfig
@@ -66,6 +67,8 @@ class AgentLauncher:
         endpoints: Zenoh endpoints the agents connect to.
         python: interpreter to run agents with.
         env: extra environment variables for the agents.
+        import_paths: folders put first on the agents' ``PYTHONPATH`` (the experiment file's
+            folder, so user vehicles/controllers named ``"module:Class"`` beside it import).
         verbose: agent log verbosity (0 warnings, 1 info, 2 debug).
     """
 
@@ -75,11 +78,16 @@ class AgentLauncher:
         *,
         python: str = sys.executable,
         env: Mapping[str, str] | None = None,
+        import_paths: Sequence[str | Path] = (),
         verbose: int = 0,
     ) -> None:
         self.endpoints = list(endpoints)
         self.python = python
         self.env = {**os.environ, **(env or {})}
+        if import_paths:
+            inherited = [p for p in self.env.get("PYTHONPATH", "").split(os.pathsep) if p]
+            folders = [str(Path(p).resolve()) for p in import_paths]
+            self.env["PYTHONPATH"] = os.pathsep.join([*folders, *inherited])
         self.verbose = verbose
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
 

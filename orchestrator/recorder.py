@@ -424,7 +424,12 @@ def record_vehicles(recorder: Recorder, experiment: Experiment, *, log_time_ns: 
 
 def _build_vehicle(experiment: Experiment, spec: AgentSpec) -> Any:
     """The agent's vehicle built without a board (``None`` when that is not possible here)."""
-    from hilswarm.agents.registry import resolve_vehicle  # noqa: PLC0415 - only when recording
+    from hilswarm.agents.registry import (  # noqa: PLC0415 - only when recording
+        add_search_path,
+        resolve_vehicle,
+    )
+
+    add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
 
     kwargs: dict[str, Any] = {"name": spec.name, "dt": experiment.dt}
     if spec.pinout:

@@ -117,7 +117,9 @@ def run(args: argparse.Namespace) -> int:
         answer_timeout_s=args.answer_timeout,
         display=display,
     )
-    launcher = AgentLauncher(endpoints, verbose=max(0, args.verbose - 1))
+    launcher = AgentLauncher(
+        endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
+    )
     interrupted = False
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
