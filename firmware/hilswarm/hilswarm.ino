@@ -74,13 +74,23 @@ void on_data_byte() {
   }
 }
 
-void on_frame() {
+// The delimiter of a frame whose reply is ready: commit and send the reply before the parser
+// even closes the frame (could_end_here() already checked everything a delimiter makes final).
+// True if the reply was sent.
+bool send_prepared_reply() {
+  if (prepared.frame == nullptr || !parser.could_end_here() ||
+      parser.candidate_length() != prepared.payload_length ||
+      !engine.commit(parser.payload(), prepared.payload_length, millis())) {
+    return false;
+  }
+  Serial.write(prepared.frame, prepared.frame_length);
+  return true;
+}
+
+void on_frame(bool answered) {
   const uint8_t* payload = parser.payload();
   const uint8_t length = parser.payload_length();
-  if (prepared.frame != nullptr && prepared.payload_length == length &&
-      engine.commit(payload, length, millis())) {
-    Serial.write(prepared.frame, prepared.frame_length);
-  } else {
+  if (!answered) {
     engine.respond(payload, length, millis(), frame_time_us, builder);
     send_reply();
   }
@@ -93,9 +103,10 @@ void on_frame() {
 }
 
 void on_byte(uint8_t byte) {
+  const bool answered = byte == hilswarm::wire::kDelimiter && send_prepared_reply();
   switch (parser.feed(byte)) {
     case hilswarm::FrameParser::kFrame:
-      on_frame();
+      on_frame(answered);
       break;
     case hilswarm::FrameParser::kTooLong:
       drop_prepared();

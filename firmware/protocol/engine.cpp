@@ -25,12 +25,6 @@ void Engine::derive_pin_sets() {
   }
 }
 
-uint8_t Engine::take_status() {
-  const uint8_t status = flags_;
-  flags_ &= static_cast<uint8_t>(~wire::kStatusEvents);
-  return status;
-}
-
 void Engine::drive_safe() {
   for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
     const PinConfig& c = config_[pin];
@@ -50,13 +44,10 @@ void Engine::drive_safe() {
   }
 }
 
-void Engine::poll(uint32_t now_ms) {
-  if (watchdog_ms_ == 0 || link_tripped_ || (flags_ & wire::kStatusNotConfigured)) return;
-  if (now_ms - last_rx_ms_ > watchdog_ms_) {  // silence *exceeds* the timeout (as SimBoard)
-    drive_safe();
-    flags_ |= wire::kStatusWatchdogTripped;
-    link_tripped_ = true;
-  }
+void Engine::trip_watchdog() {
+  drive_safe();
+  flags_ |= wire::kStatusWatchdogTripped;
+  link_tripped_ = true;
 }
 
 void Engine::error(uint8_t seq, uint8_t code, uint8_t detail, FrameBuilder& out) {
@@ -91,20 +82,6 @@ bool Engine::prepare(const uint8_t* payload, uint8_t len, uint32_t now_us, Frame
   prepared_payload_ = payload;
   prepared_len_ = len;
   prepared_flags_ = flags_;
-  return true;
-}
-
-bool Engine::commit(const uint8_t* payload, uint8_t len, uint32_t now_ms) {
-  const bool same_frame = prepared_payload_ == payload && prepared_len_ == len;
-  prepared_payload_ = nullptr;
-  if (!same_frame) return false;
-  poll(now_ms);  // as respond(): a late frame first reports the silence it ends
-  if (flags_ != prepared_flags_) return false;
-  last_rx_ms_ = now_ms;
-  link_tripped_ = false;
-  take_status();
-  pending_body_ = (flags_ & wire::kStatusEstopped) ? nullptr : payload + 2;
-  pending_len_ = static_cast<uint8_t>(len - 2);
   return true;
 }
 

@@ -51,7 +51,20 @@ class Engine {
   // Otherwise it returns false having done at most that watchdog check, and the caller answers
   // with respond() (which then builds the same reply it would have built anyway).
   bool prepare(const uint8_t* payload, uint8_t len, uint32_t now_us, FrameBuilder& out);
-  bool commit(const uint8_t* payload, uint8_t len, uint32_t now_ms);
+  // (Inline: it runs between a TICK's delimiter and the first byte of its reply.)
+  bool commit(const uint8_t* payload, uint8_t len, uint32_t now_ms) {
+    const bool same_frame = prepared_payload_ == payload && prepared_len_ == len;
+    prepared_payload_ = nullptr;
+    if (!same_frame) return false;
+    poll(now_ms);  // as respond(): a late frame first reports the silence it ends
+    if (flags_ != prepared_flags_) return false;
+    last_rx_ms_ = now_ms;
+    link_tripped_ = false;
+    take_status();
+    pending_body_ = (flags_ & wire::kStatusEstopped) ? nullptr : payload + 2;
+    pending_len_ = static_cast<uint8_t>(len - 2);
+    return true;
+  }
   // Sets the board time of the reply prepare() built in `out` to `now_us` (before finish()): the
   // firmware prepares a TICK's reply early and stamps it when the frame's last byte is in.
   // (TICK_REPLY payload: type, seq, status, board_time_us at offset 3.)
@@ -66,7 +79,10 @@ class Engine {
 
   // Periodic work: trips the link watchdog once the silence since the last valid frame exceeds
   // `watchdog_ms` (1 ms resolution).
-  void poll(uint32_t now_ms);
+  void poll(uint32_t now_ms) {
+    if (watchdog_ms_ == 0 || link_tripped_ || (flags_ & wire::kStatusNotConfigured)) return;
+    if (now_ms - last_rx_ms_ > watchdog_ms_) trip_watchdog();  // silence *exceeds* the timeout
+  }
 
   // Observers (tests).
   uint8_t peek_status() const { return flags_; }
@@ -84,8 +100,13 @@ class Engine {
   void on_set_id(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuilder& out);
   void error(uint8_t seq, uint8_t code, uint8_t detail, FrameBuilder& out);
   void error(uint8_t seq, RequestError e, FrameBuilder& out) { error(seq, e.code, e.detail, out); }
-  uint8_t take_status();   // current flags; clears the one-shot events
+  uint8_t take_status() {  // current flags; clears the one-shot events
+    const uint8_t status = flags_;
+    flags_ &= static_cast<uint8_t>(~wire::kStatusEvents);
+    return status;
+  }
   void drive_safe();
+  void trip_watchdog();    // outputs safe, WATCHDOG_TRIPPED reported until the next valid frame
   void derive_pin_sets();  // sets_, out_pins_, n_out_ from config_ (after every change)
 
   FirmwareVersion version_;
