@@ -107,7 +107,7 @@ class SimulatedMocap:
             t: the caller's time [s]; used only with ``rate_hz`` to decide whether a new
                 camera frame is due (a call without ``t`` always takes a new sample).
         """
-        if self.rate_hz is None:  # a new frame on every call: nothing is repeated later
+        if self.rate_hz is None:  # a new frame on every call: return it, keep a copy
             last = self._sample()
             self._last, self._last_t = last.copy(), t
             return last
