@@ -5,7 +5,7 @@ An agent is started by the orchestrator's launcher (``python -m hilswarm.agents.
 
 1. opens a Zenoh *client* session to the orchestrator's router (``connected``),
 2. builds its vehicle, opens and configures its board, builds its controller (``configured``),
-3. declares its publishers (``y``, ``u``, ``x_hat``, ``status``), subscribes to its
+3. declares its publishers (``y``, ``u``, ``x_hat``, ``status``, ``telemetry``), subscribes to its
    neighbours' **explicit** ``y`` keys, to the tick and control keys, declares its ``set``
    queryable and its liveliness token (``armed``),
 4. answers ticks (``running``) until told to stop.
@@ -15,6 +15,12 @@ computes ``u_k = controller(u_{k-1}, y_{k-1}, neighbours' y_{k-1})``, applies it
 board/plant advance one period (``exchange``), senses ``y_k`` and publishes it — one bus round
 trip per tick. Tick 0 only senses ``y_0``. ``u_k`` is the input held over ``[t_{k-1}, t_k)``
 and is recorded with ``t = t_{k-1}``; ``y_k`` is recorded with ``t = t_k = k * dt``.
+
+The vehicle's telemetry channels (``vehicle.telemetry``) go out in batches on
+``agent/<name>/telemetry`` (:func:`~hilswarm.agents.bus.encode_telemetry_batch`): the rows
+appended since the previous batch, every :data:`~hilswarm.agents.bus.TELEMETRY_PERIOD_S` of
+wall time (checked once per tick and while idle: one clock comparison), and a last batch when
+the agent goes safe or shuts down. A killed agent loses at most one period of telemetry.
 
 Ticks, parameter changes and commands arrive through one queue drained by the main thread
 (bus callbacks only enqueue them), so they are handled in arrival order, between ticks.
@@ -47,6 +53,7 @@ from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.lifecycle import AgentLifecycle
 from hilswarm.agents.link.url import board_for_url, link_scheme
 from hilswarm.agents.registry import resolve_controller, resolve_vehicle
+from hilswarm.agents.telemetry import TelemetryBatcher
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +65,9 @@ DEFAULT_STARTUP_TIMEOUT_S = 20.0
 NEIGHBOUR_WAIT_S = 2.0
 #: Neighbour outputs kept per neighbour (ticks).
 NEIGHBOUR_HISTORY = 4
+#: Vehicle telemetry channels not published: they would repeat ``/<agent>/{y,u,x_hat}``,
+#: which the tick path records already.
+DUPLICATE_CHANNELS = ("y", "u", "x_hat")
 
 
 class AgentConfigError(HilswarmError, ValueError):
@@ -283,6 +293,40 @@ class Agent:
         self._stop_requested = ""
         self._manager_seen = threading.Event()
         self._queue_replay: list[tuple[Any, ...]] = []
+        self._telemetry: TelemetryBatcher | None = None
+        self._telemetry_pub: zenoh.Publisher | None = None
+        self._telemetry_heads: dict[str, bytes] = {}
+        self._telemetry_due = math.inf  # wall clock [s, self._clock] of the next batch
+        self.telemetry_batches = 0
+
+    # -- telemetry -------------------------------------------------------------------------
+
+    def publish_telemetry(self) -> int:
+        """Publish the telemetry rows appended since the previous batch; returns the row count.
+
+        Does nothing before the publisher is declared or when nothing is new.
+        """
+        batcher, publisher = self._telemetry, self._telemetry_pub
+        self._telemetry_due = self._clock() + bus.TELEMETRY_PERIOD_S
+        if batcher is None or publisher is None:
+            return 0
+        rows = batcher.take()
+        if not rows:
+            return 0
+        heads = self._telemetry_heads
+        parts = []
+        count = 0
+        for channel, arrays in rows:
+            head = heads.get(channel.name)
+            if head is None:
+                head = heads[channel.name] = bus.telemetry_channel_head(
+                    channel.name, channel.fields
+                )
+            parts.append((head, arrays.k, arrays.t, arrays.values))
+            count += arrays.k.shape[0]
+        publisher.put(bus.encode_telemetry_batch(parts))
+        self.telemetry_batches += 1
+        return count
 
     # -- status ----------------------------------------------------------------------------
 
@@ -369,6 +413,14 @@ class Agent:
         self._u_pub = session.declare_publisher(keys.u(name), **bus.DATA_QOS)
         self._x_pub = session.declare_publisher(keys.x_hat(name), **bus.DATA_QOS)
         entities: list[Any] = [self._y_pub, self._u_pub, self._x_pub]
+        telemetry = getattr(self.hardware.vehicle, "telemetry", None) if self.hardware else None
+        if telemetry is not None and len(telemetry):
+            self._telemetry = TelemetryBatcher(telemetry, skip=DUPLICATE_CHANNELS)
+            self._telemetry_pub = session.declare_publisher(
+                keys.telemetry_batches(name), **bus.DATA_QOS
+            )
+            entities.append(self._telemetry_pub)
+            self._telemetry_due = self._clock() + bus.TELEMETRY_PERIOD_S
         for neighbour in self.config.neighbours:
             entities.append(
                 session.declare_subscriber(
@@ -461,6 +513,8 @@ class Agent:
             except queue.Empty:
                 if self._stop_requested:
                     break
+                if self._clock() >= self._telemetry_due:
+                    self.publish_telemetry()
                 continue
             kind = item[0]
             if kind == _TICK:
@@ -618,6 +672,8 @@ class Agent:
             for item in self._queue_replay:
                 self._queue.put(item)
             self._queue_replay.clear()
+        if self._clock() >= self._telemetry_due:
+            self.publish_telemetry()
 
     def tick_work(
         self,
@@ -687,6 +743,7 @@ class Agent:
         y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
             reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
+            self._publish_telemetry_safely()
             lifecycle.enter_safe(detail=str(reason))
         return y_payload, report, u_new, x_hat
 
@@ -721,6 +778,7 @@ class Agent:
                 except HilswarmError as exc:
                     logger.error("%s: board e-stop failed: %s", self.config.name, exc)
         if self.lifecycle.state_id not in ("safe", "stopped"):
+            self._publish_telemetry_safely()
             self.lifecycle.enter_safe(detail=f"e-stop: {reason}")
 
     def _go_safe(self, reason: str, *, fault: bool = True) -> None:
@@ -742,7 +800,15 @@ class Agent:
                 hw.vehicle.exchange()  # push the safe values to the board now
             except HilswarmError as exc:
                 logger.error("%s: could not make outputs safe: %s", self.config.name, exc)
+        self._publish_telemetry_safely()
         self.lifecycle.enter_safe(detail=reason)
+
+    def _publish_telemetry_safely(self) -> None:
+        """The last batch on the way out: a failure is logged, never stops the shutdown."""
+        try:
+            self.publish_telemetry()
+        except (HilswarmError, zenoh.ZError) as exc:
+            logger.error("%s: last telemetry batch not published: %s", self.config.name, exc)
 
     def _on_set(self, query: zenoh.Query) -> None:
         """Apply a parameter change between ticks and acknowledge it (query reply + status)."""
@@ -768,6 +834,8 @@ class Agent:
     # -- shutdown --------------------------------------------------------------------------
 
     def _shutdown(self) -> None:
+        self._publish_telemetry_safely()
+        self._telemetry_pub = None
         if self.lifecycle.state_id == "safe":
             received = sorted(self.received_from)
             self.lifecycle.stop(detail=f"received from: {', '.join(received) or '-'}")

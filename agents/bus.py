@@ -14,7 +14,11 @@ Key space, one experiment per prefix ``hilswarm/<exp>/``:
   other listeners (tools, dashboards); an agent publishes there only while someone subscribes.
 * ``agent/<name>/status`` — lifecycle transitions and acknowledgements (JSON, rare).
 * ``agent/<name>/set`` — a queryable: parameter changes, answered with an acknowledgement.
-* ``agent/<name>/telemetry/<channel>`` — telemetry channels (vector messages).
+* ``agent/<name>/telemetry`` — the vehicle's telemetry channels, in batches
+  (:func:`encode_telemetry_batch`): the rows appended since the previous batch, every
+  :data:`TELEMETRY_PERIOD_S` of wall time and once more when the agent goes safe or stops.
+* ``agent/<name>/telemetry/<channel>`` — a single telemetry vector (:func:`encode_vector`),
+  for tools that publish one; agents publish batches.
 * ``alive/<name>`` — the agent's liveliness token (kill -9 is seen when it disappears).
 
 Agents subscribe only to explicit keys, never wildcards, so a non-neighbour's output is never
@@ -148,6 +152,10 @@ class BusKeys:
     def set(self, name: str) -> str:
         """Key of agent ``name``'s parameter queryable."""
         return self.agent(name, "set")
+
+    def telemetry_batches(self, name: str) -> str:
+        """Key of agent ``name``'s telemetry batches (:func:`encode_telemetry_batch`)."""
+        return self.agent(name, "telemetry")
 
     def telemetry(self, name: str, channel: str) -> str:
         """Key of agent ``name``'s telemetry channel ``channel``."""
@@ -386,6 +394,146 @@ def _floats(n: int) -> struct.Struct:
     if layout is None:
         layout = _FLOATS[n] = struct.Struct(f"<{n}d")
     return layout
+
+
+#: Wall time between two telemetry batches of an agent [s].
+TELEMETRY_PERIOD_S = 0.25
+#: Version byte that opens every telemetry batch.
+TELEMETRY_BATCH_VERSION = 1
+
+_BATCH_HEAD = struct.Struct("<BH")
+_ROWS = struct.Struct("<I")
+
+
+@dataclass(frozen=True)
+class TelemetryRows:
+    """Rows of one telemetry channel, as carried in a batch.
+
+    Attributes:
+        channel: channel name (last part of ``/<agent>/telemetry/<channel>``).
+        fields: field names, one per value of a row.
+        k: tick indices, shape ``(n,)``, int64.
+        t: sample times [s, experiment time], shape ``(n,)``, float64.
+        values: one row per sample, shape ``(n, len(fields))``, float64 (NaN: missing value).
+    """
+
+    channel: str
+    fields: tuple[str, ...]
+    k: np.ndarray
+    t: np.ndarray
+    values: np.ndarray
+
+
+def _short_text(text: str, what: str) -> bytes:
+    data = text.encode()
+    if not 0 < len(data) < 256:
+        raise BusMessageError(f"{what} {text!r}: expected 1..255 bytes of UTF-8")
+    return bytes((len(data),)) + data
+
+
+def telemetry_channel_head(channel: str, fields: Sequence[str]) -> bytes:
+    """The part of a batch that names a channel and its fields (build it once per channel).
+
+    Layout: ``uint8`` name length, name (UTF-8), ``uint8`` field count, per field ``uint8``
+    length and name.
+    """
+    if not 0 < len(fields) < 256:
+        raise BusMessageError(f"telemetry channel {channel!r}: expected 1..255 fields")
+    parts = [_short_text(channel, "telemetry channel"), bytes((len(fields),))]
+    parts += [_short_text(field, f"telemetry channel {channel!r}: field") for field in fields]
+    return b"".join(parts)
+
+
+def encode_telemetry_batch(
+    channels: Iterable[tuple[bytes, np.ndarray, np.ndarray, np.ndarray]],
+) -> bytes:
+    """Encode a telemetry batch: the new rows of several channels in one message.
+
+    Layout (little-endian): ``uint8`` version (:data:`TELEMETRY_BATCH_VERSION`), ``uint16``
+    channel count, then per channel its head (:func:`telemetry_channel_head`), ``uint32`` row
+    count ``n``, ``n`` int64 ``k``, ``n`` float64 ``t`` [s, experiment time] and ``n * fields``
+    float64 values, row by row.
+
+    Args:
+        channels: per channel ``(head, k, t, values)``; ``values`` of shape ``(n, fields)``.
+            A channel with no rows is left out.
+    """
+    parts: list[bytes] = []
+    count = 0
+    for head, k, t, values in channels:
+        n = k.shape[0]
+        if not n:
+            continue
+        if t.shape != (n,) or values.ndim != 2 or values.shape[0] != n:
+            raise BusMessageError(
+                f"telemetry rows: k {k.shape}, t {t.shape} and values {values.shape} disagree"
+            )
+        parts += [
+            head,
+            _ROWS.pack(n),
+            np.ascontiguousarray(k, dtype="<i8").tobytes(),
+            np.ascontiguousarray(t, dtype="<f8").tobytes(),
+            np.ascontiguousarray(values, dtype="<f8").tobytes(),
+        ]
+        count += 1
+    return _BATCH_HEAD.pack(TELEMETRY_BATCH_VERSION, count) + b"".join(parts)
+
+
+def _read_text(payload: bytes | bytearray | memoryview, offset: int) -> tuple[str, int]:
+    size = payload[offset]
+    end = offset + 1 + size
+    if end > len(payload):
+        raise BusMessageError("telemetry batch cut inside a name")
+    return bytes(payload[offset + 1 : end]).decode(), end
+
+
+def decode_telemetry_batch(payload: bytes | bytearray | memoryview) -> list[TelemetryRows]:
+    """Decode :func:`encode_telemetry_batch`'s bytes (arrays are copies).
+
+    Raises:
+        BusMessageError: unknown version, or the bytes do not hold what the counts say.
+    """
+    size = len(payload)
+    if size < _BATCH_HEAD.size:
+        raise BusMessageError(f"telemetry batch of {size} bytes: expected at least 3")
+    version, count = _BATCH_HEAD.unpack_from(payload)
+    if version != TELEMETRY_BATCH_VERSION:
+        raise BusMessageError(
+            f"telemetry batch version {version}, expected {TELEMETRY_BATCH_VERSION}"
+        )
+    offset = _BATCH_HEAD.size
+    result: list[TelemetryRows] = []
+    try:
+        for _ in range(count):
+            channel, offset = _read_text(payload, offset)
+            n_fields = payload[offset]
+            offset += 1
+            fields = []
+            for _ in range(n_fields):
+                field_name, offset = _read_text(payload, offset)
+                fields.append(field_name)
+            (n,) = _ROWS.unpack_from(payload, offset)
+            offset += _ROWS.size
+            end = offset + 8 * n * (2 + n_fields)
+            if end > size:
+                raise BusMessageError(
+                    f"telemetry batch: channel {channel!r} says {n} rows of {n_fields} fields, "
+                    f"but only {size - offset} bytes follow"
+                )
+            k = np.frombuffer(payload, dtype="<i8", count=n, offset=offset).astype(np.int64)
+            t = np.frombuffer(payload, dtype="<f8", count=n, offset=offset + 8 * n).copy()
+            values = (
+                np.frombuffer(payload, dtype="<f8", count=n * n_fields, offset=offset + 16 * n)
+                .reshape(n, n_fields)
+                .copy()
+            )
+            result.append(TelemetryRows(channel, tuple(fields), k, t, values))
+            offset = end
+    except (IndexError, struct.error, UnicodeDecodeError) as exc:
+        raise BusMessageError(f"telemetry batch of {size} bytes is cut or garbled: {exc}") from exc
+    if offset != size:
+        raise BusMessageError(f"telemetry batch: {size - offset} bytes left after {count} channels")
+    return result
 
 
 class ControlCommand(enum.Enum):

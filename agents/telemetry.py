@@ -9,6 +9,9 @@ thesis' ``DynamicArray``, instead of copying the whole history on every sample a
 
 :class:`Telemetry` holds the channels of one vehicle or controller by name, and
 :func:`write_to_mcap` writes every channel of it to ``/<agent>/telemetry/<channel>``.
+:class:`TelemetryBatcher` hands out the rows appended since its previous batch, which an agent
+process publishes (encoded by :func:`hilswarm.agents.bus.encode_telemetry_batch`) so that the
+run's recording gets them.
 """
 
 from __future__ import annotations
@@ -176,6 +179,26 @@ class Channel:
             views.append(view)
         return ChannelArrays(*views)
 
+    def rows_since(self, start: int) -> ChannelArrays:
+        """Read-only views of the rows ``start, start + 1, ...`` appended so far.
+
+        Cheap (no copy); the views do not see rows appended later.
+
+        Raises:
+            TelemetryError: ``start`` is negative or beyond the filled part.
+        """
+        n = self._size
+        if not 0 <= start <= n:
+            raise TelemetryError(
+                f"channel {self.name!r}: rows from {start} asked for, but it holds {n}"
+            )
+        views = []
+        for part in (self._k[start:n], self._t[start:n], self._values[start:n]):
+            view = part.view()
+            view.flags.writeable = False
+            views.append(view)
+        return ChannelArrays(*views)
+
     def field(self, name: str) -> np.ndarray:
         """A copy of one field's values over all samples, shape ``(n,)``.
 
@@ -260,6 +283,55 @@ class Telemetry:
     ) -> int:
         """Write every channel to ``/<agent_name>/telemetry/<channel>`` (:func:`write_to_mcap`)."""
         return write_to_mcap(self, writer, agent_name, start_time_ns=start_time_ns)
+
+
+class TelemetryBatcher:
+    """Hands out the rows of a :class:`Telemetry` appended since the previous batch.
+
+    Args:
+        telemetry: the channels to follow (channels added later are followed too).
+        skip: channel names never handed out (e.g. ones that repeat what is recorded anyway).
+
+    A channel that was :meth:`Channel.clear`-ed starts again from its first row.
+    """
+
+    def __init__(self, telemetry: Telemetry, *, skip: Sequence[str] = ()) -> None:
+        self.telemetry = telemetry
+        self.skip = frozenset(skip)
+        self._sent: dict[str, int] = {}
+        self.rows_handed_out = 0
+
+    @property
+    def pending(self) -> int:
+        """Rows appended since the previous batch (skipped channels not counted)."""
+        total = 0
+        for channel in self.telemetry:
+            if channel.name not in self.skip:
+                sent = self._sent.get(channel.name, 0)
+                total += len(channel) - sent if len(channel) >= sent else len(channel)
+        return total
+
+    def take(self) -> list[tuple[Channel, ChannelArrays]]:
+        """The new rows of every followed channel (read-only views), and mark them handed out.
+
+        Channels without new rows are left out; an empty list means nothing is new.
+        """
+        batch: list[tuple[Channel, ChannelArrays]] = []
+        sent = self._sent
+        for channel in self.telemetry:
+            name = channel.name
+            if name in self.skip:
+                continue
+            size = len(channel)
+            start = sent.get(name, 0)
+            if start > size:  # cleared since: start again
+                start = 0
+            if size == start:
+                continue
+            batch.append((channel, channel.rows_since(start)))
+            sent[name] = size
+            self.rows_handed_out += size - start
+        return batch
 
 
 def telemetry_topic(agent_name: str, channel_name: str) -> str:

@@ -46,6 +46,7 @@ from hilswarm.orchestrator.record_stream import (
     RecordSink,
     event_frame,
     status_frame,
+    telemetry_frame,
     tick_frame,
     vector_frame,
     y_frame,
@@ -301,7 +302,8 @@ class InstanceManager:
                     zenoh.handlers.Callback(self._y_callback(i), indirect=False),
                 )
             )
-        # u and x_hat arrive inside the agents' y reports; status and telemetry on their keys.
+        # u and x_hat arrive inside the agents' y reports; status and telemetry on their keys
+        # (telemetry batches on agent/<name>/telemetry, single vectors one level below).
         entities.append(
             session.declare_subscriber(
                 f"{keys.prefix}/agent/*/status",
@@ -310,8 +312,14 @@ class InstanceManager:
         )
         entities.append(
             session.declare_subscriber(
-                f"{keys.prefix}/agent/*/telemetry/**",
+                f"{keys.prefix}/agent/*/telemetry/*",
                 zenoh.handlers.Callback(self._on_vector, indirect=False),
+            )
+        )
+        entities.append(
+            session.declare_subscriber(
+                f"{keys.prefix}/agent/*/telemetry",
+                zenoh.handlers.Callback(self._on_telemetry, indirect=False),
             )
         )
         put = self._events.put
@@ -401,6 +409,20 @@ class InstanceManager:
             logger.warning("vector message not understood: %s", exc)
             return
         frame = vector_frame(i, self._wall_ns(), leaf, sample.payload.to_bytes())
+        with self._lock:
+            self._frames.append(frame)
+
+    def _on_telemetry(self, sample: zenoh.Sample) -> None:
+        """An agent's telemetry batch (every ~0.25 s): kept as it came, decoded by the recorder."""
+        if self._sink is None:
+            return
+        try:
+            name, _ = self.keys.parse_agent_key(str(sample.key_expr))
+            i = self._index[name]
+        except (bus.BusKeyError, KeyError) as exc:
+            logger.warning("telemetry batch not understood: %s", exc)
+            return
+        frame = telemetry_frame(i, self._wall_ns(), sample.payload.to_bytes())
         with self._lock:
             self._frames.append(frame)
 

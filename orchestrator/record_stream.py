@@ -22,6 +22,9 @@ Frame layout (little-endian): ``uint8 kind``, ``uint32 body length``, body:
   status the manager itself records (an agent lost, e-stop, the reason of a stop).
 * ``VECTOR`` — ``uint16 agent``, ``int64 log time [ns]``, ``uint16 leaf length``, the key leaf
   (``telemetry/<channel>``), a vector payload.
+* ``TELEMETRY`` — ``uint16 agent``, ``int64 log time [ns]``, the agent's telemetry batch as
+  sent (:func:`~hilswarm.agents.bus.encode_telemetry_batch`); the recorder writes one message
+  per row on ``/<agent>/telemetry/<channel>``, with the channel's field names.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from hilswarm.orchestrator.recorder import TICKS_SCHEMA, TICKS_TOPIC, Recorder
 
 logger = logging.getLogger(__name__)
 
-Y, TICK, STATUS, EVENT, VECTOR = 1, 2, 3, 4, 5
+Y, TICK, STATUS, EVENT, VECTOR, TELEMETRY = 1, 2, 3, 4, 5, 6
 
 _HEAD = struct.Struct("<BI")
 _Y_HEAD = struct.Struct("<BIHqI")
@@ -118,6 +121,12 @@ def vector_frame(agent: int, log_time_ns: int, leaf: str, payload: bytes) -> byt
     return _VECTOR_HEAD.pack(VECTOR, size, agent, log_time_ns, len(name)) + name + payload
 
 
+def telemetry_frame(agent: int, log_time_ns: int, payload: bytes) -> bytes:
+    """Frame of an agent's telemetry batch (as received; decoded by the recorder)."""
+    size = _AGENT_HEAD.size - _HEAD.size + len(payload)
+    return _AGENT_HEAD.pack(TELEMETRY, size, agent, log_time_ns) + payload
+
+
 # -- decoding (the recorder's side) -----------------------------------------------------------
 
 
@@ -168,6 +177,9 @@ class FrameRecorder:
         self._timings: list[tuple[int, bus.AgentTiming] | None] = [None] * len(self.names)
         self._ticks_registered = False
         self._plain_y: set[int] = set()
+        # Telemetry topics seen: topic -> field names it was registered with (None: plain).
+        self._telemetry_topics: dict[str, tuple[str, ...] | None] = {}
+        self.telemetry_rows = 0
         self.frames = 0
         self.errors = 0
 
@@ -193,6 +205,8 @@ class FrameRecorder:
                 self._event(frame)
             elif kind == VECTOR:
                 self._vector(frame)
+            elif kind == TELEMETRY:
+                self._telemetry(frame)
             else:
                 raise RecordingError(f"unknown frame kind {kind}")
         except (HilswarmError, ValueError, struct.error, IndexError) as exc:
@@ -307,3 +321,34 @@ class FrameRecorder:
         self.recorder.write_floats(
             f"/{self.names[i]}/{leaf}", k=k, t=t, values=values, log_time_ns=log_ns
         )
+
+    def _telemetry(self, frame: bytes) -> None:
+        _, _, i, log_ns = _AGENT_HEAD.unpack_from(frame)
+        agent = self.names[i]
+        for rows in bus.decode_telemetry_batch(frame[_AGENT_HEAD.size :]):
+            topic = f"/{agent}/telemetry/{rows.channel}"
+            fields = self._telemetry_fields(topic, rows.fields)
+            k_list, t_list, value_rows = rows.k.tolist(), rows.t.tolist(), rows.values.tolist()
+            if fields is None:
+                for k, t, values in zip(k_list, t_list, value_rows, strict=True):
+                    self._plain_vector(topic, k, t, values, log_ns)
+            else:
+                write = self.recorder.write_floats
+                for k, t, values in zip(k_list, t_list, value_rows, strict=True):
+                    write(topic, k=k, t=t, values=values, log_time_ns=log_ns)
+            self.telemetry_rows += len(k_list)
+
+    def _telemetry_fields(self, topic: str, fields: tuple[str, ...]) -> tuple[str, ...] | None:
+        """Register ``topic`` with ``fields`` on first sight; ``None``: record it plain."""
+        if topic not in self._telemetry_topics:
+            registered: tuple[str, ...] | None = fields
+            try:
+                self.recorder.add_topic(topic, fields=fields)
+            except RecordingError as exc:  # a field called "k", or a clash: plain values
+                logger.warning("%s without field names: %s", topic, exc)
+                registered = None
+            self._telemetry_topics[topic] = registered
+        known = self._telemetry_topics[topic]
+        if known is not None and known != fields:
+            raise RecordingError(f"{topic}: fields changed from {known} to {fields} in the run")
+        return known
