@@ -92,6 +92,7 @@ class Channel:
         self.fields: tuple[str, ...] = field_names
         self._shape = (len(field_names),)
         self._size = 0
+        self._clears = 0
         self._k = np.empty(initial_capacity, dtype=np.int64)
         self._t = np.empty(initial_capacity, dtype=np.float64)
         self._values = np.empty((initial_capacity, len(field_names)), dtype=np.float64)
@@ -220,9 +221,15 @@ class Channel:
         i = self._size - 1
         return int(self._k[i]), float(self._t[i]), self._values[i].copy()
 
+    @property
+    def clears(self) -> int:
+        """How many times :meth:`clear` was called (readers of new rows restart on a change)."""
+        return self._clears
+
     def clear(self) -> None:
         """Forget every sample (keeps the allocated capacity)."""
         self._size = 0
+        self._clears += 1
 
 
 class Telemetry:
@@ -298,18 +305,22 @@ class TelemetryBatcher:
     def __init__(self, telemetry: Telemetry, *, skip: Sequence[str] = ()) -> None:
         self.telemetry = telemetry
         self.skip = frozenset(skip)
-        self._sent: dict[str, int] = {}
+        self._sent: dict[str, tuple[int, int]] = {}  # channel -> (its clears, rows handed out)
         self.rows_handed_out = 0
 
     @property
     def pending(self) -> int:
         """Rows appended since the previous batch (skipped channels not counted)."""
-        total = 0
-        for channel in self.telemetry:
-            if channel.name not in self.skip:
-                sent = self._sent.get(channel.name, 0)
-                total += len(channel) - sent if len(channel) >= sent else len(channel)
-        return total
+        return sum(
+            len(channel) - self._start(channel)
+            for channel in self.telemetry
+            if channel.name not in self.skip
+        )
+
+    def _start(self, channel: Channel) -> int:
+        """First row of ``channel`` not handed out yet (0 after a :meth:`Channel.clear`)."""
+        clears, sent = self._sent.get(channel.name, (channel.clears, 0))
+        return sent if clears == channel.clears else 0
 
     def take(self) -> list[tuple[Channel, ChannelArrays]]:
         """The new rows of every followed channel (read-only views), and mark them handed out.
@@ -317,19 +328,14 @@ class TelemetryBatcher:
         Channels without new rows are left out; an empty list means nothing is new.
         """
         batch: list[tuple[Channel, ChannelArrays]] = []
-        sent = self._sent
         for channel in self.telemetry:
-            name = channel.name
-            if name in self.skip:
+            if channel.name in self.skip:
                 continue
-            size = len(channel)
-            start = sent.get(name, 0)
-            if start > size:  # cleared since: start again
-                start = 0
+            size, start = len(channel), self._start(channel)
             if size == start:
                 continue
             batch.append((channel, channel.rows_since(start)))
-            sent[name] = size
+            self._sent[channel.name] = (channel.clears, size)
             self.rows_handed_out += size - start
         return batch
 
