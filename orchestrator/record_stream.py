@@ -40,6 +40,7 @@ import numpy as np
 from hilswarm.agents import bus
 from hilswarm.agents.errors import HilswarmError, RecordingError
 from hilswarm.agents.mcap_io import json_number
+from hilswarm.agents.telemetry import telemetry_topic
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.recorder import TICKS_SCHEMA, TICKS_TOPIC, Recorder
 
@@ -326,7 +327,7 @@ class FrameRecorder:
         _, _, i, log_ns = _AGENT_HEAD.unpack_from(frame)
         agent = self.names[i]
         for rows in bus.decode_telemetry_batch(frame[_AGENT_HEAD.size :]):
-            topic = f"/{agent}/telemetry/{rows.channel}"
+            topic = telemetry_topic(agent, rows.channel)
             fields = self._telemetry_fields(topic, rows.fields)
             k_list, t_list, value_rows = rows.k.tolist(), rows.t.tolist(), rows.values.tolist()
             if fields is None:
