@@ -169,16 +169,10 @@ class Channel:
             copy: ``True`` (default) returns independent copies. ``False`` returns read-only
                 views of the storage: cheap, but they do not see samples appended later.
         """
+        if not copy:
+            return self.rows_since(0)
         n = self._size
-        parts = (self._k[:n], self._t[:n], self._values[:n])
-        if copy:
-            return ChannelArrays(*(part.copy() for part in parts))
-        views = []
-        for part in parts:
-            view = part.view()
-            view.flags.writeable = False
-            views.append(view)
-        return ChannelArrays(*views)
+        return ChannelArrays(self._k[:n].copy(), self._t[:n].copy(), self._values[:n].copy())
 
     def rows_since(self, start: int) -> ChannelArrays:
         """Read-only views of the rows ``start, start + 1, ...`` appended so far.
