@@ -61,7 +61,7 @@ from typing import Protocol
 import numpy as np
 from hilswarm.agents.errors import PlantError
 from hilswarm.agents.sim.blimp_params import DEFAULT_BLIMP_PARAMS, BlimpParams
-from hilswarm.agents.sim.plant import ContinuousPlant, integrate
+from hilswarm.agents.sim.plant import ContinuousPlant, integrate, wrap_angle
 from numpy.typing import ArrayLike
 
 __all__ = [
@@ -86,11 +86,6 @@ OUTPUT_NAMES = ("x", "y", "z", "yaw")
 REDUCED_STATE_NAMES = ("u", "v", "w", "r", "x", "y", "z", "yaw")
 #: Indices of the reduced states inside the full 12-state vector.
 REDUCED_INDEX = (6, 7, 8, 11, 0, 1, 2, 5)
-
-
-def wrap_angle(angle: float) -> float:
-    """Wrap an angle [rad] to [-π, π)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def rotation_body_to_world(roll: float, pitch: float, yaw: float) -> np.ndarray:

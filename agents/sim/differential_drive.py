@@ -41,7 +41,7 @@ from typing import Protocol
 
 import numpy as np
 from hilswarm.agents.errors import PlantError
-from hilswarm.agents.sim.plant import ContinuousPlant
+from hilswarm.agents.sim.plant import ContinuousPlant, wrap_angle
 from numpy.typing import ArrayLike
 
 #: Below this |θ| = |ψ̇ Δt| [rad] the arc functions use their Taylor series.
@@ -157,11 +157,6 @@ def arc_step(
     cos0, sin0 = math.cos(psi), math.sin(psi)
     forward, left = distance * s, distance * c  # displacement in the start body frame
     return x + forward * cos0 - left * sin0, y + forward * sin0 + left * cos0, psi + theta
-
-
-def wrap_angle(angle: float) -> float:
-    """Wrap an angle [rad] to [-π, π)."""
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class DifferentialDrive(ContinuousPlant):

@@ -40,6 +40,7 @@ __all__ = [
     "euler_step",
     "integrate",
     "rk4_step",
+    "wrap_angle",
 ]
 
 Rate = Callable[[float, np.ndarray], np.ndarray]
@@ -63,6 +64,11 @@ _STEPS: dict[str, Callable[[Rate, float, np.ndarray, float], np.ndarray]] = {
     "euler": euler_step,
     "rk4": rk4_step,
 }
+
+
+def wrap_angle(angle: float) -> float:
+    """Wrap an angle [rad] to [-π, π)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def check_method(method: str, substeps: int) -> None:
