@@ -39,9 +39,6 @@ from hilswarm.agents.link.board import (
     ADC_MAX,
     PIN_COUNT,
     PROTOCOL_VERSION,
-    PWM_MAX,
-    SERVO_MAX_US,
-    SERVO_MIN_US,
     Board,
     BoardInfo,
     BoardStatus,
@@ -52,7 +49,7 @@ from hilswarm.agents.link.board import (
     TickReply,
     pin_name,
 )
-from hilswarm.agents.pins import BoardProfile, get_profile, parse_pin
+from hilswarm.agents.pins import BoardProfile, get_profile, parse_pin, value_range
 
 logger = logging.getLogger(__name__)
 
@@ -102,13 +99,10 @@ def _is_real(value: object) -> bool:
 
 
 def _mode_range(mode: PinMode) -> tuple[int, int]:
-    if mode is PinMode.DIGITAL_OUT:
-        return (0, 1)
-    if mode is PinMode.PWM:
-        return (0, PWM_MAX)
-    if mode is PinMode.SERVO:
-        return (SERVO_MIN_US, SERVO_MAX_US)
-    return (0, 0xFFFF)  # inputs: the u16 safe field is ignored
+    """Wire values a pin in ``mode`` takes: an output's write range, anything for the rest."""
+    if mode.is_output:
+        return value_range(mode)
+    return (0, 0xFFFF)  # inputs and unused pins: the u16 safe field is ignored
 
 
 class SimBoard(Board):
