@@ -345,14 +345,6 @@ def decode_report(payload: bytes | bytearray | memoryview | None) -> TickReport:
     return TickReport(AgentTiming(compute_s, actuate_s, sense_s, skipped), u, x_hat)
 
 
-def vector_header(payload: bytes | bytearray | memoryview) -> tuple[int, float]:
-    """``(k, t)`` of an :func:`encode_vector` message without decoding its values."""
-    if len(payload) < _VECTOR_HEADER.size:
-        raise BusMessageError(f"vector message of {len(payload)} bytes: expected at least 16")
-    k, t = _VECTOR_HEADER.unpack_from(payload)
-    return k, t
-
-
 def unpack_vector(payload: bytes | bytearray | memoryview) -> tuple[int, float, tuple[float, ...]]:
     """Like :func:`decode_vector`, but the values as a tuple of floats (cheap for short vectors)."""
     size = len(payload)

@@ -39,7 +39,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 
@@ -547,15 +547,3 @@ def gain_schedule(
         schedule = GainSchedule.build(params, grid, weights)
         _CACHE[key] = schedule
     return schedule
-
-
-def grid_from_values(
-    airspeeds: Sequence[float] | None = None, headings: int | None = None
-) -> ScheduleGrid:
-    """A :class:`ScheduleGrid` with some fields replaced (``None`` keeps the default)."""
-    return ScheduleGrid(
-        airspeeds=tuple(float(v) for v in airspeeds)
-        if airspeeds is not None
-        else DEFAULT_GRID.airspeeds,
-        headings=headings if headings is not None else DEFAULT_GRID.headings,
-    )

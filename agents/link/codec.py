@@ -31,7 +31,6 @@ from typing import ClassVar
 
 from hilswarm.agents.errors import CobsDecodeError, WireFormatError
 from hilswarm.agents.link.board import (
-    ADC_MAX,
     MODE_CAPABILITY,
     PIN_COUNT,
     PWM_MAX,
@@ -632,13 +631,6 @@ def check_tick(msg: TickMsg, modes: Sequence[int]) -> None:
             raise WireFormatError(
                 f"TICK servo pin {w.pin}: {w.value} µs outside {SERVO_MIN_US}-{SERVO_MAX_US}",
                 code=ErrorCode.BAD_VALUE, detail=w.pin)
-
-
-def sample_in_range(pin_mode: int, value: int) -> bool:
-    """True if ``value`` is a possible sample of a pin in ``pin_mode`` (0/1 or 0-1023)."""
-    if pin_mode == PinMode.ANALOG_IN:
-        return 0 <= value <= ADC_MAX
-    return value in (0, 1)
 
 
 # --------------------------------------------------------------------------- decoder
