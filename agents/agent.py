@@ -332,6 +332,8 @@ class Agent:
 
     def _on_transition(self, event: str, source: str, target: str, detail: str) -> None:
         logger.info("%s: %s -> %s (%s) %s", self.config.name, source, target, event, detail)
+        if target == "safe":  # the rows up to the fault go out before the safe status
+            self._publish_telemetry_safely()
         self.publish_status(
             {"kind": "transition", "event": event, "source": source, "state": target},
             detail=detail,
@@ -743,7 +745,6 @@ class Agent:
         y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
             reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
-            self._publish_telemetry_safely()
             lifecycle.enter_safe(detail=str(reason))
         return y_payload, report, u_new, x_hat
 
@@ -778,7 +779,6 @@ class Agent:
                 except HilswarmError as exc:
                     logger.error("%s: board e-stop failed: %s", self.config.name, exc)
         if self.lifecycle.state_id not in ("safe", "stopped"):
-            self._publish_telemetry_safely()
             self.lifecycle.enter_safe(detail=f"e-stop: {reason}")
 
     def _go_safe(self, reason: str, *, fault: bool = True) -> None:
@@ -800,7 +800,6 @@ class Agent:
                 hw.vehicle.exchange()  # push the safe values to the board now
             except HilswarmError as exc:
                 logger.error("%s: could not make outputs safe: %s", self.config.name, exc)
-        self._publish_telemetry_safely()
         self.lifecycle.enter_safe(detail=reason)
 
     def _publish_telemetry_safely(self) -> None:
