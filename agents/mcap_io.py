@@ -230,6 +230,10 @@ class McapJsonWriter:
         """Registered topics, in registration order."""
         return tuple(self._topics)
 
+    def has_topic(self, topic: str) -> bool:
+        """True if ``topic`` is registered (no copy of :attr:`topics`: cheap per message)."""
+        return topic in self._topics
+
     @property
     def closed(self) -> bool:
         """True once :meth:`close` has run."""

@@ -203,7 +203,7 @@ class Recorder:
             if not self._experiment_written:
                 self._write_experiment(log_time_ns)
             writer = self._writer
-            if topic not in writer.topics:
+            if not writer.has_topic(topic):
                 writer.add_topic(topic)
             writer.write_floats(topic, k=k, t=t, values=values, log_time_ns=int(log_time_ns))
             self.message_count += 1
@@ -331,7 +331,7 @@ class Recorder:
             self._check_open(topic)
             if not self._experiment_written:
                 self._write_experiment(log_time_ns)
-            if topic not in self._writer.topics:
+            if not self._writer.has_topic(topic):
                 self._writer.add_topic(topic)
             self._writer.write(
                 topic, k=int(k), t=float(t), values=values, log_time_ns=int(log_time_ns), **fields
