@@ -109,6 +109,7 @@ class SerialPort(Protocol):
     """The part of :class:`serial.SerialBase` the board uses."""
 
     timeout: float | None
+    """Read timeout [s] (pyserial's meaning: ``None`` blocks, ``0`` never waits)."""
 
     def read(self, size: int = 1) -> bytes: ...
     def write(self, data: bytes) -> int | None: ...
