@@ -18,6 +18,7 @@ A malformed pinout (missing or unknown role, a pin spec that is not a pin) raise
 
 from __future__ import annotations
 
+import math
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
@@ -27,7 +28,26 @@ from hilswarm.agents.errors import DeviceError, PinError
 from hilswarm.agents.link.board import PinMode
 from hilswarm.agents.pins import PinManager, parse_pin
 
-__all__ = ["Actuator", "Device", "InOut", "Sensor"]
+__all__ = ["Actuator", "Device", "InOut", "Sensor", "number_option"]
+
+
+def number_option(value: object, what: str, *, positive: bool = False) -> float:
+    """``value`` as a finite float (``> 0`` when ``positive``), else a ``DeviceError``.
+
+    Device options (reference voltages, pulse widths, angles) are checked with this, so a bad
+    one is refused with a message naming the option and the value.
+    """
+    expected = "a number > 0" if positive else "a number"
+    if isinstance(value, bool):
+        raise DeviceError(f"{what}: expected {expected}, got {value!r}")
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise DeviceError(f"{what}: expected {expected}, got {value!r}") from None
+    if not math.isfinite(number) or (positive and number <= 0):
+        finite = "a finite number > 0" if positive else "a finite number"
+        raise DeviceError(f"{what}: expected {finite}, got {value!r}")
+    return number
 
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 

@@ -8,7 +8,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from hilswarm.agents.devices.base import Sensor
+from hilswarm.agents.devices.base import Sensor, number_option
 from hilswarm.agents.errors import DeviceError
 from hilswarm.agents.link.board import ADC_MAX, PinMode
 from hilswarm.agents.pins import PinManager
@@ -34,18 +34,6 @@ class LowBatteryEvent:
 
 
 LowBatteryListener = Callable[[LowBatteryEvent], None]
-
-
-def _positive(value: object, what: str) -> float:
-    if isinstance(value, bool):
-        raise DeviceError(f"{what}: expected a number > 0, got {value!r}")
-    try:
-        number = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise DeviceError(f"{what}: expected a number > 0, got {value!r}") from None
-    if not math.isfinite(number) or number <= 0:
-        raise DeviceError(f"{what}: expected a finite number > 0, got {value!r}")
-    return number
 
 
 class Battery(Sensor):
@@ -84,11 +72,12 @@ class Battery(Sensor):
         **options: Any,
     ) -> None:
         who = f"Battery {name!r}"
-        self.vref_v: float = _positive(
-            pins.profile.vref_v if vref_v is None else vref_v, f"{who}: vref_v"
+        raw_vref = pins.profile.vref_v if vref_v is None else vref_v
+        self.vref_v: float = number_option(raw_vref, f"{who}: vref_v", positive=True)
+        self.multiplier = number_option(multiplier, f"{who}: multiplier", positive=True)
+        self.low_v: float | None = (
+            None if low_v is None else number_option(low_v, f"{who}: low_v", positive=True)
         )
-        self.multiplier: float = _positive(multiplier, f"{who}: multiplier")
-        self.low_v: float | None = None if low_v is None else _positive(low_v, f"{who}: low_v")
         if isinstance(hysteresis_v, bool) or not isinstance(hysteresis_v, int | float):
             raise DeviceError(f"{who}: hysteresis_v must be a number >= 0, got {hysteresis_v!r}")
         if not math.isfinite(hysteresis_v) or hysteresis_v < 0:

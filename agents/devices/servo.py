@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
-from hilswarm.agents.devices.base import Actuator
+from hilswarm.agents.devices.base import Actuator, number_option
 from hilswarm.agents.errors import DeviceError
 from hilswarm.agents.link.board import SERVO_MAX_US, SERVO_MIN_US, PinMode
 from hilswarm.agents.pins import PinManager
@@ -16,18 +15,6 @@ __all__ = ["Servo"]
 #: Arduino Servo library defaults: 544 µs at 0 deg, 2400 µs at 180 deg.
 DEFAULT_MIN_PULSE_US = 544
 DEFAULT_MAX_PULSE_US = 2400
-
-
-def _finite(value: object, what: str) -> float:
-    if isinstance(value, bool):
-        raise DeviceError(f"{what}: expected a number, got {value!r}")
-    try:
-        number = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise DeviceError(f"{what}: expected a number, got {value!r}") from None
-    if not math.isfinite(number):
-        raise DeviceError(f"{what}: expected a finite number, got {value!r}")
-    return number
 
 
 class Servo(Actuator):
@@ -70,15 +57,15 @@ class Servo(Actuator):
         **options: Any,
     ) -> None:
         who = f"Servo {name!r}"
-        lo_us = _finite(min_pulse_us, f"{who}: min_pulse_us")
-        hi_us = _finite(max_pulse_us, f"{who}: max_pulse_us")
+        lo_us = number_option(min_pulse_us, f"{who}: min_pulse_us")
+        hi_us = number_option(max_pulse_us, f"{who}: max_pulse_us")
         if not SERVO_MIN_US <= lo_us < hi_us <= SERVO_MAX_US:
             raise DeviceError(
                 f"{who}: pulse range {min_pulse_us!r}..{max_pulse_us!r} µs must satisfy "
                 f"{SERVO_MIN_US} <= min_pulse_us < max_pulse_us <= {SERVO_MAX_US}"
             )
-        lo_deg = _finite(min_angle_deg, f"{who}: min_angle_deg")
-        hi_deg = _finite(max_angle_deg, f"{who}: max_angle_deg")
+        lo_deg = number_option(min_angle_deg, f"{who}: min_angle_deg")
+        hi_deg = number_option(max_angle_deg, f"{who}: max_angle_deg")
         if not lo_deg < hi_deg:
             raise DeviceError(
                 f"{who}: min_angle_deg {min_angle_deg!r} must be below max_angle_deg "
@@ -93,15 +80,15 @@ class Servo(Actuator):
                 raise DeviceError(
                     f"{who}: angle_limits_deg must be (lo, hi) [deg], got {angle_limits_deg!r}"
                 ) from None
-            limit_lo = _finite(raw_lo, f"{who}: angle_limits_deg lo")
-            limit_hi = _finite(raw_hi, f"{who}: angle_limits_deg hi")
+            limit_lo = number_option(raw_lo, f"{who}: angle_limits_deg lo")
+            limit_hi = number_option(raw_hi, f"{who}: angle_limits_deg hi")
             if not lo_deg <= limit_lo <= limit_hi <= hi_deg:
                 raise DeviceError(
                     f"{who}: angle_limits_deg {angle_limits_deg!r} must lie inside the mapped "
                     f"range {lo_deg}..{hi_deg} deg with lo <= hi"
                 )
         neutral = (limit_lo + limit_hi) / 2 if neutral_deg is None else neutral_deg
-        neutral = _finite(neutral, f"{who}: neutral_deg")
+        neutral = number_option(neutral, f"{who}: neutral_deg")
         if not limit_lo <= neutral <= limit_hi:
             raise DeviceError(
                 f"{who}: neutral_deg {neutral_deg!r} outside the angle limits "
@@ -142,7 +129,7 @@ class Servo(Actuator):
         Raises:
             DeviceError: the angle is not a finite number.
         """
-        angle = _finite(angle_deg, f"Servo {self.name!r}: angle_deg")
+        angle = number_option(angle_deg, f"Servo {self.name!r}: angle_deg")
         angle = min(max(angle, self.angle_limits_deg[0]), self.angle_limits_deg[1])
         self.write("pin", self.angle_to_pulse(angle))
         self._angle_deg = angle
