@@ -22,11 +22,24 @@ appended since the previous batch, every :data:`~hilswarm.agents.bus.TELEMETRY_P
 wall time (checked once per tick and while idle: one clock comparison), and a last batch when
 the agent goes safe or shuts down. A killed agent loses at most one period of telemetry.
 
-Ticks, parameter changes and commands arrive through one queue drained by the main thread
-(bus callbacks only enqueue them), so they are handled in arrival order, between ticks.
-Neighbours' outputs, several per tick, are stored by their bus callback directly (decoded,
-under a lock) instead of costing a thread hop each; the main thread is woken for them only
-while a tick waits for a late one.
+Ticks run on the bus: the callback that receives the tick message, or the neighbour output
+that was the last one missing, runs the tick right there (no thread hop per tick). One lock
+(the *engine lock*) serialises ticks, commands and parameter changes, so each is handled
+whole, between ticks. The main thread only handles rare work: parameter changes (queries),
+signals, the manager's disappearance, and the periodic telemetry batch.
+
+Which tick runs when (the tick message of :class:`~hilswarm.agents.bus.TickMessage` releases
+ticks up to ``k``):
+
+* ``lockstep`` — the agent steps through every released tick; it computes tick ``k`` as soon
+  as *its own* neighbours' ``y_{k-1}`` are in (a lost neighbour, listed in ``missing``,
+  counts as no data). The manager releases ticks at most ``lockstep_window`` ahead of the
+  slowest agent. Since ``u_k`` depends only on the agent's own and its neighbours' outputs,
+  the results are those of a swarm-wide barrier per tick, whatever the window.
+* ``realtime`` — tick messages come on the wall-clock schedule and the agent runs the newest
+  one; a tick message that arrives more than :data:`STALE_TICK_PERIODS` periods after its
+  schedule (the agent was stalled and messages queued up) is skipped, and the next tick that
+  runs reports how many were skipped and may use older neighbour outputs.
 """
 
 from __future__ import annotations
@@ -61,10 +74,14 @@ logger = logging.getLogger(__name__)
 DEFAULT_WATCHDOG_S = 0.5
 #: How long an agent waits for the router, its publishers' subscribers and the manager [s].
 DEFAULT_STARTUP_TIMEOUT_S = 20.0
-#: How long a tick may wait for a neighbour output the manager says is in [s].
-NEIGHBOUR_WAIT_S = 2.0
-#: Neighbour outputs kept per neighbour (ticks).
+#: Realtime: a tick message later than this many periods after its schedule is skipped.
+STALE_TICK_PERIODS = 1.5
+#: Realtime: how fast the estimate of the bus delay forgets its minimum [periods per tick].
+DELAY_ESTIMATE_RELAX = 0.01
+#: Neighbour outputs kept per neighbour older than this agent's last tick [ticks].
 NEIGHBOUR_HISTORY = 4
+#: Bound on the neighbour outputs kept per neighbour (newer ones included) [ticks].
+MAX_NEIGHBOUR_HISTORY = 2048
 #: Vehicle telemetry channels not published: they would repeat ``/<agent>/{y,u,x_hat}``,
 #: which the tick path records already.
 DUPLICATE_CHANNELS = ("y", "u", "x_hat")
@@ -110,6 +127,8 @@ class AgentConfig:
         seed: seed for simulated sensors (mocap noise), or ``None``.
         mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
         mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
+        mode: ``"lockstep"`` or ``"realtime"`` (how released ticks are run, see the module
+            docstring).
     """
 
     experiment: str
@@ -129,6 +148,7 @@ class AgentConfig:
     seed: int | None = None
     mocap_noise_std_m: float = 0.0
     mocap_noise_std_rad: float = 0.0
+    mode: str = "lockstep"
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
@@ -144,6 +164,10 @@ class AgentConfig:
             raise AgentConfigError(f"agent {self.name!r} lists itself as its own neighbour")
         if not (isinstance(self.dt, int | float) and math.isfinite(self.dt) and self.dt > 0):
             raise AgentConfigError(f"agent {self.name!r}: dt must be > 0 [s], got {self.dt!r}")
+        if self.mode not in ("lockstep", "realtime"):
+            raise AgentConfigError(
+                f"agent {self.name!r}: mode must be 'lockstep' or 'realtime', got {self.mode!r}"
+            )
 
     @property
     def index(self) -> int:
@@ -243,8 +267,8 @@ def _open_board(config: AgentConfig, vehicle: Any) -> Any:
 # The agent
 # ---------------------------------------------------------------------------------------------
 
-# Queue items: (kind, payload...). Kinds are small ints for speed.
-_TICK, _NEIGHBOUR, _CONTROL, _SET, _MANAGER_GONE, _SIGNAL, _NEIGHBOUR_IN = range(7)
+# Main-thread queue items: (kind, payload...). Rare: never one per tick.
+_SET, _MANAGER_GONE, _SIGNAL, _FAILED, _WAKE = range(5)
 #: No agent missing (the common tick).
 _NOBODY: frozenset[str] = frozenset()
 
@@ -286,10 +310,18 @@ class Agent:
         self._y: np.ndarray | None = None
         self._neighbour_y: dict[str, dict[int, np.ndarray]] = {n: {} for n in config.neighbours}
         self._received_from: set[str] = set()
-        # Neighbours' outputs are stored by the bus callback itself (no thread hop per message);
-        # this lock guards _neighbour_y, _received_from and _waiting_for_neighbours.
-        self._neighbour_lock = threading.Lock()
-        self._waiting_for_neighbours = False
+        # The engine lock serialises ticks (run by bus callbacks), commands and parameter
+        # changes; it guards everything a tick reads or writes.
+        self._engine_lock = threading.RLock()
+        self._ticking = False  # ticks run only between arm and stop
+        self._realtime = config.mode == "realtime"
+        self._horizon = -1  # highest tick released by the manager
+        self._horizon_t = 0.0  # its experiment time [s]
+        self._tick_missing: frozenset[str] = _NOBODY  # realtime: missing for the newest tick
+        self._lost: frozenset[str] = _NOBODY  # lockstep: agents the manager reports lost
+        self._delay_estimate = math.inf  # realtime: tick arrival - schedule, minimum [s]
+        self._last_arrival = -math.inf  # realtime: arrival of the previous tick message [s]
+        self._late_alone = False  # realtime: the previous tick message was late on its own
         self._stop_requested = ""
         self._manager_seen = threading.Event()
         self._queue_replay: list[tuple[Any, ...]] = []
@@ -411,6 +443,7 @@ class Agent:
 
     def _declare(self, session: zenoh.Session) -> None:
         keys, name, put = self.keys, self.config.name, self._queue.put
+        guarded = self._guarded
         self._y_pub = session.declare_publisher(keys.y(name), **bus.TICK_PATH_QOS)
         self._u_pub = session.declare_publisher(keys.u(name), **bus.DATA_QOS)
         self._x_pub = session.declare_publisher(keys.x_hat(name), **bus.DATA_QOS)
@@ -428,7 +461,10 @@ class Agent:
                 session.declare_subscriber(
                     keys.y(neighbour),
                     zenoh.handlers.Callback(
-                        lambda s, n=neighbour: self._on_neighbour_sample(n, s), indirect=False
+                        lambda s, n=neighbour: guarded(
+                            self.receive_neighbour, n, s.payload.to_bytes()
+                        ),
+                        indirect=False,
                     ),
                 )
             )
@@ -436,7 +472,7 @@ class Agent:
             session.declare_subscriber(
                 keys.tick,
                 zenoh.handlers.Callback(
-                    lambda s: put((_TICK, s.payload.to_bytes())), indirect=False
+                    lambda s: guarded(self.receive_tick, s.payload.to_bytes()), indirect=False
                 ),
             )
         )
@@ -444,7 +480,8 @@ class Agent:
             session.declare_subscriber(
                 keys.control,
                 zenoh.handlers.Callback(
-                    lambda s: put((_CONTROL, s.payload.to_bytes())), indirect=False
+                    lambda s: guarded(self.receive_control, s.payload.to_bytes()),
+                    indirect=False,
                 ),
             )
         )
@@ -493,187 +530,209 @@ class Agent:
             for item in self._queue_replay:
                 self._queue.put(item)
             self._queue_replay.clear()
+            with self._engine_lock:
+                self._ticking = True
+                self._advance()  # a tick released while arming runs now
             status = self._loop()
         except StopRequestedError as exc:
+            self._halt()
             self._go_safe(str(exc), fault=not exc.orderly)
             status = 0
         except HilswarmError as exc:
+            self._halt()
             logger.error("agent %s failed: %s", self.config.name, exc)
             self._go_safe(f"failed: {exc}")
         except Exception as exc:  # a bug in user code must still leave the vehicle safe
+            self._halt()
             logger.exception("agent %s crashed", self.config.name)
             self._go_safe(f"crashed: {type(exc).__name__}: {exc}")
         finally:
             self._shutdown()
         return status
 
+    def _halt(self) -> None:
+        """No more ticks (waits for a tick in progress to finish)."""
+        with self._engine_lock:
+            self._ticking = False
+
     def _loop(self) -> int:
+        """The main thread while running: rare work only (ticks run on the bus callbacks)."""
         get = self._queue.get
-        while True:
+        while not self._stop_requested:
             try:
                 item = get(timeout=0.25)
             except queue.Empty:
-                if self._stop_requested:
-                    break
-                if self._clock() >= self._telemetry_due:
+                item = None
+            if item is not None:
+                kind = item[0]
+                if kind == _SET:
+                    with self._engine_lock:
+                        self._on_set(item[1])
+                elif kind == _FAILED:
+                    raise item[1]
+                elif kind in (_MANAGER_GONE, _SIGNAL):
+                    with self._engine_lock:
+                        self._ticking = False
+                        self._go_safe(str(item[1]), fault=kind == _MANAGER_GONE)
+                        self._stop_requested = str(item[1])
+            if self._clock() >= self._telemetry_due:
+                with self._engine_lock:
                     self.publish_telemetry()
-                continue
-            kind = item[0]
-            if kind == _TICK:
-                self._on_tick(item[1])
-            elif kind == _NEIGHBOUR:
-                self.receive_neighbour(item[1], item[2])
-            elif kind == _SET:
-                self._on_set(item[1])
-            elif kind == _CONTROL:
-                self._on_control(item[1])
-            elif kind in (_MANAGER_GONE, _SIGNAL):
-                self._go_safe(str(item[1]), fault=kind == _MANAGER_GONE)
-                self._stop_requested = str(item[1])
-            if self._stop_requested:
-                break
-        self._go_safe(self._stop_requested, fault=False)  # a stop command: the orderly end
+        with self._engine_lock:  # a stop command: the orderly end
+            self._ticking = False
+            self._go_safe(self._stop_requested, fault=False)
         return 0
+
+    def _guarded(self, handler: Callable[..., None], *args: Any) -> None:
+        """Run a bus callback's work; a failure goes to the main thread, which stops safely."""
+        try:
+            handler(*args)
+        except Exception as exc:  # the main thread re-raises it: safe mode, exit status 1
+            with self._engine_lock:
+                self._ticking = False
+            self._queue.put((_FAILED, exc))
 
     def use_hardware(self, hardware: AgentHardware) -> None:
         """Take the built vehicle/board/controller (``run`` does this with its factory)."""
         self.hardware = hardware
         self._u = np.zeros(int(hardware.vehicle.n_inputs))
 
-    def _on_neighbour_sample(self, name: str, sample: zenoh.Sample) -> None:
-        """Bus callback (a Zenoh thread): store a neighbour's y message right away.
-
-        Only a main thread that is waiting for neighbours gets a wake-up item; a malformed
-        message goes to the main thread, which fails on it as on any bad input.
-        """
-        payload = sample.payload.to_bytes()
-        with self._neighbour_lock:
-            try:
-                self._store_neighbour(name, payload)
-            except bus.BusMessageError:
-                stored = False
-            else:
-                stored = True
-            wake = self._waiting_for_neighbours
-        if not stored:
-            self._queue.put((_NEIGHBOUR, name, payload))
-        elif wake:
-            self._queue.put((_NEIGHBOUR_IN, name))
+    # -- ticks -------------------------------------------------------------------------------
 
     def receive_neighbour(self, name: str, payload: bytes) -> None:
-        """Store a neighbour's y message (what the bus callback does with each one)."""
-        with self._neighbour_lock:
-            self._store_neighbour(name, payload)
+        """A neighbour's y message (bus callback): store it; run a tick that waited for it.
 
-    def _store_neighbour(self, name: str, payload: bytes) -> None:
+        Raises:
+            bus.BusMessageError: the message does not follow the vector layout.
+        """
         k, _t, values = bus.decode_vector(payload)
         values.flags.writeable = False  # shared with the controller: read-only, no copy
-        history = self._neighbour_y[name]
-        history[k] = values
-        self._received_from.add(name)
-        if len(history) > NEIGHBOUR_HISTORY:
-            del history[min(history)]
+        with self._engine_lock:
+            history = self._neighbour_y[name]
+            history[k] = values
+            self._received_from.add(name)
+            # Keep what a tick may still need: y_{self.k} and newer (a neighbour may run up
+            # to a lockstep window ahead), and a few older ones for a realtime catch-up.
+            while len(history) > 1:
+                oldest = min(history)
+                if oldest >= self.k - NEIGHBOUR_HISTORY and len(history) <= MAX_NEIGHBOUR_HISTORY:
+                    break
+                del history[oldest]
+            if self._ticking and self._horizon > self.k and k >= self.k:
+                self._advance()
 
-    def _neighbour_outputs(self, k_prev: int, missing: frozenset[str], stale_ok: bool) -> dict:
-        """Neighbours' y_{k_prev}; waits (bounded) for those the manager reports in."""
+    def receive_tick(self, payload: bytes, *, arrived: float | None = None) -> None:
+        """A tick message (bus callback): release ticks up to its ``k`` and run what can run.
+
+        Args:
+            payload: the encoded :class:`~hilswarm.agents.bus.TickMessage`.
+            arrived: when it arrived [s, this agent's clock]; default: now.
+
+        Raises:
+            bus.BusMessageError: the message does not follow the tick layout.
+        """
+        tick = bus.decode_tick(payload)
+        arrived = self._clock() if arrived is None else arrived
+        with self._engine_lock:
+            if tick.missing:
+                names = self.config.agent_names
+                missing = frozenset(names[i] for i in tick.missing if i < len(names))
+            else:
+                missing = _NOBODY
+            if self._realtime:
+                if tick.k <= self._horizon:
+                    return  # duplicate or out of order
+                if self._is_stale(tick.t, arrived):
+                    return  # it queued up while this agent was stalled: a fresher one follows
+                self._horizon, self._horizon_t, self._tick_missing = tick.k, tick.t, missing
+            else:
+                self._lost = self._lost | missing if missing else self._lost
+                if tick.k > self._horizon:
+                    self._horizon, self._horizon_t = tick.k, tick.t
+            if self._ticking:
+                self._advance()
+
+    def _is_stale(self, t: float, arrived: float) -> bool:
+        """Realtime: did the tick of time ``t`` [s] queue up while this agent was stalled?
+
+        Its delay (arrival on this agent's clock minus ``t``) is compared with the smallest
+        delay seen (which slowly forgets, so a slower bus is accepted). A message more than
+        :data:`STALE_TICK_PERIODS` late that arrives right behind the previous one (a burst of
+        queued messages) is stale. A late one on its own runs; two in a row mean the schedule
+        moved (a resume) or the bus got slower, and the second becomes the new reference.
+        """
+        dt = self.config.dt
+        delay = arrived - t
+        burst = arrived - self._last_arrival < 0.5 * dt
+        self._last_arrival = arrived
+        if delay - self._delay_estimate > STALE_TICK_PERIODS * dt:
+            if burst and self.k >= 0:
+                return True
+            if self._late_alone:
+                self._delay_estimate = delay
+            self._late_alone = True
+            return False
+        self._late_alone = False
+        self._delay_estimate = min(delay, self._delay_estimate + DELAY_ESTIMATE_RELAX * dt)
+        return False
+
+    def receive_control(self, payload: bytes) -> None:
+        """A swarm-wide command (bus callback): handled at once, between ticks."""
+        with self._engine_lock:
+            self._on_control(payload)
+        if self._stop_requested:
+            self._queue.put((_WAKE,))
+
+    def _advance(self) -> None:
+        """Run every released tick whose inputs are in (call under the engine lock)."""
+        dt = self.config.dt
+        while self._ticking and self.k < self._horizon:
+            if self._realtime:  # the newest released tick; those in between are skipped
+                k = self._horizon
+                skipped = k - self.k - 1 if self.k >= 0 else 0
+                missing, stale_ok = self._tick_missing, skipped > 0
+            else:
+                k, skipped, missing, stale_ok = self.k + 1, 0, self._lost, False
+            neighbours: dict[str, np.ndarray | None] | None = None
+            if k > 0 and self._y is not None and self.lifecycle.state_id in ("armed", "running"):
+                neighbours = self._gather(k - 1, missing, stale_ok)
+                if neighbours is None:
+                    return  # a neighbour's y_{k-1} is still on its way
+            self._run_tick(k, self._horizon_t if self._realtime else k * dt, skipped, neighbours)
+
+    def _gather(
+        self, k_prev: int, missing: frozenset[str], stale_ok: bool
+    ) -> dict[str, np.ndarray | None] | None:
+        """Neighbours' y_{k_prev}, or ``None`` while one that is not missing is not in yet."""
         result: dict[str, np.ndarray | None] = {}
-        waiting = []
-        with self._neighbour_lock:
-            for name in self.config.neighbours:
-                history = self._neighbour_y[name]
-                if k_prev in history:
-                    result[name] = history[k_prev]
-                elif name in missing:
-                    result[name] = None
-                elif stale_ok:
-                    older = [k for k in history if k < k_prev]
-                    result[name] = history[max(older)] if older else None
-                else:
-                    waiting.append(name)
-            self._waiting_for_neighbours = bool(waiting)
-        if waiting:
-            try:
-                self._wait_for_neighbours(k_prev, waiting, result)
-            finally:
-                with self._neighbour_lock:
-                    self._waiting_for_neighbours = False
+        for name in self.config.neighbours:
+            history = self._neighbour_y[name]
+            values = history.get(k_prev)
+            if values is not None:
+                result[name] = values
+            elif name in missing:
+                result[name] = None
+            elif stale_ok:
+                older = [k for k in history if k < k_prev]
+                result[name] = history[max(older)] if older else None
+            else:
+                return None
         return result
 
-    def _wait_for_neighbours(
-        self, k_prev: int, waiting: list[str], result: dict[str, np.ndarray | None]
+    def _run_tick(
+        self, k: int, t: float, skipped: int, neighbours: dict[str, np.ndarray | None] | None
     ) -> None:
-        """Wait (bounded) until every name in ``waiting`` has sent y_{k_prev}; fill ``result``."""
-        deadline = self._clock() + NEIGHBOUR_WAIT_S
-        while waiting:
-            remaining = deadline - self._clock()
-            if remaining <= 0:
-                logger.warning(
-                    "%s: tick %d: no output from %s", self.config.name, k_prev + 1, waiting
-                )
-                for name in waiting:
-                    result[name] = None
-                return
-            try:
-                item = self._queue.get(timeout=remaining)
-            except queue.Empty:
-                continue
-            kind = item[0]
-            if kind == _NEIGHBOUR:
-                self.receive_neighbour(item[1], item[2])
-            elif kind == _CONTROL:
-                self._on_control(item[1])
-                continue
-            elif kind != _NEIGHBOUR_IN:
-                self._queue_replay.append(item)
-                continue
-            with self._neighbour_lock:
-                for name in list(waiting):
-                    history = self._neighbour_y[name]
-                    if k_prev in history:
-                        waiting.remove(name)
-                        result[name] = history[k_prev]
-
-    def _latest_tick(self, payload: bytes) -> tuple[bus.TickMessage, int]:
-        """Decode a tick; if more ticks are queued (we fell behind), keep only the newest."""
-        tick = bus.decode_tick(payload)
-        skipped = 0
-        while True:
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                break
-            if item[0] == _TICK:
-                tick = bus.decode_tick(item[1])
-                skipped += 1
-            elif item[0] == _NEIGHBOUR:
-                self.receive_neighbour(item[1], item[2])
-            elif item[0] == _CONTROL:
-                self._on_control(item[1])
-            elif item[0] != _NEIGHBOUR_IN:  # a wake-up nobody waits for any more
-                self._queue_replay.append(item)
-        return tick, skipped
-
-    def _on_tick(self, payload: bytes) -> None:
-        tick, skipped = self._latest_tick(payload)
-        if tick.k <= self.k:
-            return  # duplicate or stale tick
+        """Tick ``k`` with its inputs in: compute, apply, sense, publish (under the lock)."""
         if self.lifecycle.state_id == "armed":
             self.lifecycle.start()
-        missing = _NOBODY
-        if tick.missing:
-            names = self.config.agent_names
-            missing = frozenset(names[i] for i in tick.missing if i < len(names))
-        k, t = tick.k, tick.t
-        y_payload, report, u_new, x_hat = self.tick_work(k, t, skipped=skipped, missing=missing)
+        y_payload, report, u_new, x_hat = self.tick_work(
+            k, t, skipped=skipped, neighbours=neighbours
+        )
         self._y_pub.put(y_payload, attachment=report)
         if u_new is not None and self._extra_listeners[0].is_set():
             self._u_pub.put(bus.encode_vector(k, t - self.config.dt, u_new))
         if x_hat is not None and x_hat.size and self._extra_listeners[1].is_set():
             self._x_pub.put(bus.encode_vector(k, t - self.config.dt, x_hat))
-        if self._queue_replay:
-            for item in self._queue_replay:
-                self._queue.put(item)
-            self._queue_replay.clear()
         if self._clock() >= self._telemetry_due:
             self.publish_telemetry()
 
@@ -684,6 +743,7 @@ class Agent:
         *,
         skipped: int = 0,
         missing: frozenset[str] = frozenset(),
+        neighbours: Mapping[str, np.ndarray | None] | None = None,
     ) -> tuple[bytes, bytes, np.ndarray | None, np.ndarray | None]:
         """The agent's own work for tick ``k`` at experiment time ``t`` [s], without the bus.
 
@@ -697,6 +757,8 @@ class Agent:
             t: experiment time of the tick [s].
             skipped: ticks dropped before this one because the agent fell behind.
             missing: agents whose ``y_{k-1}`` the manager reports missing.
+            neighbours: the neighbours' ``y_{k-1}`` (``None`` for no data) when already
+                gathered; default: taken from what was received (absent: no data).
 
         Returns:
             ``(y message, tick report, u_k or None, x_hat_k or None)``: the payload and
@@ -711,7 +773,10 @@ class Agent:
         t0 = clock()
         u_new: np.ndarray | None = None
         if k > 0 and self._y is not None and lifecycle.state_id == "running":
-            neighbours = self._neighbour_outputs(k - 1, missing, stale_ok=skipped > 0)
+            if neighbours is None:
+                with self._engine_lock:
+                    everyone = missing | frozenset(self.config.neighbours)  # absent: no data
+                    neighbours = self._gather(k - 1, everyone, False)
             try:
                 u_new = hw.model.step(self._u, self._y, t=t - dt, neighbours=neighbours)
                 u_new.flags.writeable = False  # ours alone: the next step needs no copy of it
@@ -760,6 +825,7 @@ class Agent:
         if command is bus.ControlCommand.ESTOP:
             self._estop(reason or "e-stop")
         elif command is bus.ControlCommand.STOP:
+            self._ticking = False  # no tick after a stop command; the main thread goes safe
             self._stop_requested = reason or "stop requested"
         elif command is bus.ControlCommand.PAUSE and state == "running":
             self.lifecycle.pause(detail=reason)
@@ -857,7 +923,7 @@ class Agent:
     @property
     def received_from(self) -> frozenset[str]:
         """Agents whose output this agent actually received (neighbour-only delivery check)."""
-        with self._neighbour_lock:
+        with self._engine_lock:
             return frozenset(self._received_from)
 
 

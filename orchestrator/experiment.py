@@ -62,6 +62,10 @@ AGENT_LOSS_POLICIES: tuple[str, ...] = ("stop", "continue")
 AGENT_SAFE_POLICIES: tuple[str, ...] = ("continue", "stop")
 #: Highest control rate accepted [Hz]; above it no board link or bus keeps up.
 MAX_RATE_HZ = 1000.0
+#: Lockstep: how many ticks an agent may run ahead of the slowest one (1: a strict barrier).
+DEFAULT_LOCKSTEP_WINDOW = 8
+#: Largest accepted lockstep window [ticks].
+MAX_LOCKSTEP_WINDOW = 1024
 
 EXPERIMENT_KEYS: tuple[str, ...] = (
     "name",
@@ -72,6 +76,7 @@ EXPERIMENT_KEYS: tuple[str, ...] = (
     "on_agent_safe",
     "watchdog_s",
     "seed",
+    "lockstep_window",
 )
 GRAPH_KEYS: tuple[str, ...] = ("agents", "adjacency", "file", "undirected")
 AGENT_KEYS: tuple[str, ...] = (
@@ -150,6 +155,10 @@ class Experiment:
         watchdog_s: board watchdog timeout [s], or ``None`` for the agent's default.
         seed: seed of every random generator of the run (noise, simulated mocap), or ``None``.
         graph_file: the graph file the adjacency came from, or ``None`` when inline.
+        lockstep_window: lockstep only: an agent computes tick ``k`` as soon as its own
+            neighbours' ``y_{k-1}`` are in, at most this many ticks ahead of the slowest
+            agent [ticks]. Results do not depend on it (an agent's input depends on its
+            neighbours' outputs only); ``1`` makes every tick a swarm-wide barrier.
     """
 
     name: str
@@ -165,6 +174,7 @@ class Experiment:
     seed: int | None = None
     graph_file: Path | None = None
     on_agent_safe: Literal["continue", "stop"] = "continue"
+    lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
 
     @property
     def dt(self) -> float:
@@ -333,6 +343,7 @@ class _Parser:
             seed=settings["seed"],
             graph_file=graph_file,
             on_agent_safe=settings["on_agent_safe"],
+            lockstep_window=settings["lockstep_window"],
         )
 
     # -- [experiment] ------------------------------------------------------------------------
@@ -361,6 +372,9 @@ class _Parser:
         )
         settings["watchdog_s"] = self._watchdog(table.get("watchdog_s"), "experiment.watchdog_s")
         settings["seed"] = self._seed(table.get("seed"), "experiment.seed")
+        settings["lockstep_window"] = self._window(
+            table.get("lockstep_window", DEFAULT_LOCKSTEP_WINDOW), "experiment.lockstep_window"
+        )
         return settings
 
     def _apply_overrides(self, settings: dict[str, Any], overrides: Mapping[str, Any]) -> None:
@@ -431,6 +445,20 @@ class _Parser:
         if isinstance(value, bool) or not isinstance(value, int) or value < 0:
             self.problem(key, f"{value!r} is not a valid seed; expected an integer >= 0")
             return None
+        return value
+
+    def _window(self, value: Any, key: str) -> int:
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int)
+            or not 1 <= value <= MAX_LOCKSTEP_WINDOW
+        ):
+            self.problem(
+                key,
+                f"{value!r} is not a valid window; expected an integer number of ticks, "
+                f"1 <= lockstep_window <= {MAX_LOCKSTEP_WINDOW}",
+            )
+            return DEFAULT_LOCKSTEP_WINDOW
         return value
 
     def _number(self, value: Any, key: str) -> float | None:

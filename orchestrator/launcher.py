@@ -57,6 +57,7 @@ def agent_config_for(
         seed=experiment.seed,
         mocap_noise_std_m=mocap_noise_std_m,
         mocap_noise_std_rad=mocap_noise_std_rad,
+        mode=experiment.mode,
     )
 
 

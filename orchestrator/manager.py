@@ -6,8 +6,11 @@ liveliness token ``hilswarm/<exp>/alive/_manager``, waits until every agent's li
 is up (agents declare it after all their publishers and subscribers, so then every
 subscription is known), and then sends ticks:
 
-* ``lockstep`` — tick k+1 is sent as soon as every y_k is in: simulated time runs as fast as
-  the agents answer; results are reproducible.
+* ``lockstep`` — simulated time runs as fast as the agents answer; results are reproducible.
+  Ticks are *released* up to ``lockstep_window`` ahead of the oldest tick whose answers are
+  not all in (a tick message k releases every tick up to k), in steps of half a window; an
+  agent computes tick k as soon as its own neighbours' y_{k-1} are in. Its input depends on
+  nothing else, so the numbers are those of a swarm-wide barrier per tick (window 1).
 * ``realtime`` — tick k is sent at ``T0 + k * dt`` on the monotonic clock (drift free). Agents
   whose y_k is not in when tick k+1 is due are counted *late* for that tick (per agent) and
   listed as missing in tick k+1, so their neighbours see ``None``; late answers are recorded
@@ -158,39 +161,56 @@ class _Account(NamedTuple):
     answers: np.ndarray | None
 
 
-class _Tick:
-    """The tick in flight, shared by the bus callbacks and the ticking thread (under a lock).
+class _Ticks:
+    """The ticks in flight, shared by the bus callbacks and the ticking thread (under a lock).
 
-    Arrays are indexed like the experiment's agents and preallocated: recording an answer is
-    a few element stores.
+    Ticks ``base .. released`` are open (sent, not every answer in); at most ``window`` of
+    them (realtime: one). Arrays are indexed ``[k % window, agent]`` and preallocated:
+    recording an answer is a few element stores.
     """
 
-    def __init__(self, n: int) -> None:
-        self.k = -1
-        self.scheduled = 0.0
-        self.sent = 0.0
+    def __init__(self, n: int, window: int) -> None:
+        self.window = window
+        self.base = 0  # oldest open tick
+        self.released = -1  # newest tick sent
         self.last_progress = 0.0
         self.expected = n
-        self.count = 0
-        self.arrived = np.zeros(n, dtype=bool)
-        self.answered_at = np.full(n, np.nan)  # manager clock [s]
+        self.count = np.zeros(window, dtype=np.int64)
+        self.scheduled = np.zeros(window)
+        self.sent = np.zeros(window)
+        self.done = np.zeros(window)
+        self.arrived = np.zeros((window, n), dtype=bool)
+        self.answered_at = np.full((window, n), np.nan)  # manager clock [s]
         self.lost = np.zeros(n, dtype=bool)
 
-    def begin(self, k: int, scheduled: float, sent: float) -> None:
-        """Tick ``k``, scheduled at ``scheduled``, is sent at ``sent`` [s, manager clock]."""
-        self.k, self.scheduled, self.sent, self.last_progress = k, scheduled, sent, sent
-        self.count = 0
-        self.arrived[:] = False
-        self.answered_at[:] = np.nan
+    @property
+    def k(self) -> int:
+        """The newest tick sent (-1 before the first)."""
+        return self.released
+
+    def release(self, k: int, scheduled: float, sent: float) -> None:
+        """Tick ``k`` (``released + 1``), scheduled at ``scheduled``, is sent at ``sent`` [s]."""
+        slot = k % self.window
+        self.released = k
+        self.scheduled[slot], self.sent[slot] = scheduled, sent
+        self.last_progress = max(self.last_progress, sent)
+        self.count[slot] = 0
+        self.arrived[slot] = False
+        self.answered_at[slot] = np.nan
+
+    def base_complete(self) -> bool:
+        """Every expected answer of the oldest open tick is in."""
+        return self.base <= self.released and self.count[self.base % self.window] >= self.expected
 
     def unanswered(self) -> list[int]:
-        """Agents (not lost) whose y_k is not in."""
-        return np.flatnonzero(~(self.arrived | self.lost)).tolist()
+        """Agents (not lost) whose y of the oldest open tick is not in."""
+        slot = self.base % self.window
+        return np.flatnonzero(~(self.arrived[slot] | self.lost)).tolist()
 
     def recount(self) -> None:
         """Recompute what is expected after agents were lost."""
         self.expected = int((~self.lost).sum())
-        self.count = int((self.arrived & ~self.lost).sum())
+        self.count[:] = (self.arrived & ~self.lost).sum(axis=1)
 
 
 class InstanceManager:
@@ -260,7 +280,8 @@ class InstanceManager:
         self._next_flush = 0.0
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
-        self._tick = _Tick(self.n)
+        self.window = experiment.lockstep_window if self.mode == "lockstep" else 1
+        self._tick = _Ticks(self.n, self.window)
         self._frames: list[bytes] = []
         self.agent_states: dict[str, str] = {}
         # Rare events for the ticking thread: liveliness, control, stop, safe, lockstep done.
@@ -348,6 +369,12 @@ class InstanceManager:
         keep, record = self._frames.append, self._sink is not None
         lockstep = self.mode != "realtime"
         put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
+        window, arrived, answered_at, count = (
+            tick.window,
+            tick.arrived,
+            tick.answered_at,
+            tick.count,
+        )
 
         def on_y(sample: zenoh.Sample) -> None:
             received = clock()
@@ -367,16 +394,20 @@ class InstanceManager:
                             attachment.to_bytes() if attachment is not None else b"",
                         )
                     )
-                if k != tick.k or tick.arrived[i]:
-                    return  # a late answer (recorded) or a duplicate
-                tick.arrived[i] = True
-                tick.answered_at[i] = received
+                if k < tick.base or k > tick.released:
+                    return  # a late answer (recorded) or a stray one
+                slot = k % window
+                if arrived[slot, i]:
+                    return  # a duplicate
+                arrived[slot, i] = True
+                answered_at[slot, i] = received
                 if tick.lost[i]:
                     return
-                tick.count += 1
-                tick.last_progress = received
-                if lockstep and tick.count >= tick.expected:
-                    put((_COMPLETE, k))
+                count[slot] += 1
+                if k == tick.base:
+                    tick.last_progress = received
+                    if lockstep and count[slot] >= tick.expected:
+                        put((_COMPLETE, k))
 
         return on_y
 
@@ -515,7 +546,6 @@ class InstanceManager:
 
     def run(self) -> RunSummary:
         """Send every tick of the experiment, then stop the agents. Returns the summary."""
-        n_ticks = self.experiment.n_ticks
         realtime = self.mode == "realtime"
         clock, get, dt = self._clock, self._events.get, self.dt
         tick = self._tick
@@ -527,7 +557,10 @@ class InstanceManager:
         if realtime:
             self._wait_until(t0)
         if not self._stop_reason:
-            self._next_tick(0, t0, ())
+            if realtime:
+                self._release(0, t0)
+            else:
+                self._release_window()
         next_display = start + 0.5
         while not self._stop_reason:
             now = clock()
@@ -542,7 +575,7 @@ class InstanceManager:
             else:
                 wait_until = min(now + 0.1, tick.last_progress + self.answer_timeout_s)
             if now >= next_display:
-                self._show(tick.k, start, now)
+                self._show(tick.base - 1, start, now)
                 next_display = now + 0.5
             if now >= self._next_flush:
                 self._flush_records()
@@ -555,77 +588,105 @@ class InstanceManager:
                 self._handle(item)
                 if self._stop_reason:
                     break
-            if self._paused:
-                continue
-            now = clock()
             if realtime:
-                if now < due:
-                    continue
-                with self._lock:
-                    complete = tick.count >= tick.expected
-                    late = [] if complete else tick.unanswered()
-                    account = self._close_tick(late, complete)
-                    k = tick.k + 1
-                    if k < n_ticks:
-                        missing = sorted(set(late) | self.lost)
-                        tick.begin(k, t0 + k * dt, clock())
-                if k < n_ticks:
-                    self._send_tick(k, missing)
-                self._account(account)
-                for j in late:
-                    self.summary.late[self.names[j]] += 1
-                if late:
-                    self.summary.late_ticks += 1
-                else:
-                    self.summary.ticks += 1
-                if k >= n_ticks:
-                    self._stop_reason = "completed"
+                if not self._paused and clock() >= due:
+                    self._realtime_step(t0)
             else:
-                with self._lock:
-                    complete = tick.count >= tick.expected
-                    if complete:
-                        account = self._close_tick([], True)
-                        k = tick.k + 1
-                        if k < n_ticks:
-                            now = clock()
-                            tick.begin(k, now, now)
-                if complete:
-                    if k < n_ticks:
-                        self._send_tick(k, sorted(self.lost))
-                    self._account(account)
-                    self.summary.ticks += 1
-                    if k >= n_ticks:
-                        self._stop_reason = "completed"
-                elif now - tick.last_progress > self.answer_timeout_s:
-                    for j in tick.unanswered():
-                        self._on_agent_gone(
-                            self.names[j], tick.k, f"no answer within {self.answer_timeout_s} s"
-                        )
-                    with self._lock:
-                        tick.last_progress = now
+                self._lockstep_step()
         summary = self.summary
         summary.wall_s = clock() - start
         summary.stop_reason = self._stop_reason
         summary.completion_s = self._completion[: summary.ticks + summary.late_ticks][
             np.isfinite(self._completion[: summary.ticks + summary.late_ticks])
         ].tolist()
-        self._show(tick.k, start, clock())
-        self._stop_agents(tick.k)
+        self._show(tick.base - 1, start, clock())
+        self._stop_agents(max(tick.base - 1, 0))
         return summary
 
-    def _next_tick(self, k: int, scheduled: float, missing: Sequence[int]) -> None:
+    def _realtime_step(self, t0: float) -> None:
+        """Close the tick in flight (late agents counted) and send the next one, due now."""
+        tick, n_ticks = self._tick, self.experiment.n_ticks
         with self._lock:
-            self._tick.begin(k, scheduled, self._clock())
-        self._send_tick(k, missing)
+            complete = tick.base_complete()
+            late = [] if complete else tick.unanswered()
+            account = self._close_base(late, complete)
+            k = tick.released + 1
+            if k < n_ticks:
+                missing = sorted(set(late) | self.lost)
+                tick.release(k, t0 + k * self.dt, self._clock())
+        if k < n_ticks:
+            self._send_tick(k, missing)
+        self._account(account)
+        for j in late:
+            self.summary.late[self.names[j]] += 1
+        if late:
+            self.summary.late_ticks += 1
+        else:
+            self.summary.ticks += 1
+        if k >= n_ticks:
+            self._stop_reason = "completed"
 
-    def _close_tick(self, late: list[int], complete: bool) -> _Account:
-        """The account of the tick in flight (call under the lock, before ``begin``)."""
+    def _lockstep_step(self) -> None:
+        """Close every completed tick, release more, and find agents that stopped answering."""
         tick = self._tick
-        done = tick.last_progress if complete else math.nan
-        if complete and tick.expected == 0:
-            done = self._clock()
-        answers = tick.answered_at - tick.sent if self._record_ticks else None
-        return _Account(tick.k, tick.scheduled, tick.sent, done, late, answers)
+        accounts = []
+        with self._lock:
+            while tick.base_complete():
+                accounts.append(self._close_base([], True))
+        for account in accounts:
+            self._account(account)
+        self.summary.ticks += len(accounts)
+        if tick.base >= self.experiment.n_ticks:
+            self._stop_reason = "completed"
+            return
+        if not self._paused:
+            self._release_window()
+        now = self._clock()
+        if not accounts and now - tick.last_progress > self.answer_timeout_s:
+            for j in tick.unanswered():
+                self._on_agent_gone(
+                    self.names[j], tick.base, f"no answer within {self.answer_timeout_s} s"
+                )
+            with self._lock:
+                tick.last_progress = now
+
+    def _release_window(self) -> None:
+        """Lockstep: release ticks up to ``lockstep_window`` ahead of the oldest open one.
+
+        Releases in steps of half a window (one tick message covers several ticks), or at
+        once when nothing is in flight.
+        """
+        tick = self._tick
+        target = min(tick.base - 1 + self.window, self.experiment.n_ticks - 1)
+        if target <= tick.released:
+            return
+        idle = tick.base > tick.released
+        if idle or target - tick.released >= max(1, self.window // 2):
+            self._release(target, self._clock())
+
+    def _release(self, k: int, scheduled: float) -> None:
+        """Open ticks up to ``k`` (scheduled at ``scheduled`` [s]) and send tick ``k``."""
+        tick = self._tick
+        with self._lock:
+            now = self._clock()
+            for j in range(tick.released + 1, k + 1):
+                tick.release(j, scheduled, now)
+        self._send_tick(k, sorted(self.lost))
+
+    def _close_base(self, late: list[int], complete: bool) -> _Account:
+        """The account of the oldest open tick, which is closed (call under the lock)."""
+        tick = self._tick
+        slot = tick.base % tick.window
+        answered = tick.answered_at[slot]
+        done = math.nan
+        if complete:
+            counted = answered[~tick.lost]
+            done = float(np.nanmax(counted)) if np.isfinite(counted).any() else self._clock()
+        sent = float(tick.sent[slot])
+        answers = answered - sent if self._record_ticks else None
+        account = _Account(tick.base, float(tick.scheduled[slot]), sent, done, late, answers)
+        tick.base += 1
+        return account
 
     def _account(self, account: _Account) -> None:
         """Record the timing account of a tick (times on the manager clock [s])."""
@@ -651,7 +712,7 @@ class InstanceManager:
     def _handle(self, item: tuple[Any, ...]) -> None:
         """One event while ticking."""
         kind = item[0]
-        k = self._tick.k
+        k = self._tick.base
         if kind == _COMPLETE:
             return  # the loop closes the tick
         if kind == _GONE:
@@ -722,6 +783,9 @@ class InstanceManager:
         with self._lock:
             self._tick.lost[i] = True
             self._tick.recount()
+        if self.mode == "lockstep" and self._tick.released >= 0 and not self._stop_reason:
+            # Tell the neighbours now: they may be waiting for this agent's output.
+            self._send_tick(self._tick.released, sorted(self.lost))
         self.summary.lost.append(name)
         logger.warning("agent %s lost at tick %d: %s", name, k, reason)
         if self._display is not None:

@@ -113,3 +113,32 @@ def test_lead_follow_records_every_vehicles_calibration(lead_follow_recording: d
     # The outputs are named after the vehicle's output_names, beside values.
     first = lead_follow_recording["/leader/y"][0]
     assert first["values"] == [first["x"], first["y"], first["psi"]]
+
+
+def test_lockstep_results_do_not_depend_on_the_window(
+    lead_follow_recording: dict, runs: list[RunProcess], tmp_path: Path
+) -> None:
+    """Window 1 (a swarm-wide barrier every tick) records exactly what the default records.
+
+    An agent's input depends only on its own and its neighbours' outputs, so letting agents
+    run ahead of non-neighbours (the default window of 8 ticks) changes no number.
+    """
+    text = (GRAPHS / "lead_follow.toml").read_text(encoding="utf-8")
+    barrier = tmp_path / "lead_follow_barrier.toml"
+    barrier.write_text(
+        text.replace('mode = "lockstep"', 'mode = "lockstep"\nlockstep_window = 1', 1),
+        encoding="utf-8",
+    )
+    assert load_experiment(barrier).lockstep_window == 1
+    assert load_experiment(GRAPHS / "lead_follow.toml").lockstep_window > 1
+    run = RunProcess(tmp_path, barrier, port=free_port())
+    runs.append(run)
+    assert run.wait(300) == 0, run.output()
+    strict = read_recording(run.out)
+    for name in ("leader", "f1", "f2"):
+        for leaf in ("y", "u"):
+            got = [(m["k"], m["values"]) for m in lead_follow_recording[f"/{name}/{leaf}"]]
+            want = [(m["k"], m["values"]) for m in strict[f"/{name}/{leaf}"]]
+            assert got == want, (name, leaf)
+    ticks = strict["/orchestrator/ticks"]
+    assert [m["k"] for m in ticks] == list(range(len(ticks)))

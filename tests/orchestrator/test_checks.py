@@ -25,6 +25,11 @@ CASES: dict[str, tuple[str, str, str]] = {
         "experiment.on_agent_loss",
         "'retry' is not one of",
     ),
+    "bad_lockstep_window.toml": (
+        "bad_lockstep_window.toml",
+        "experiment.lockstep_window",
+        "0 is not a valid window",
+    ),
     "unknown_key.toml": ("unknown_key.toml", "experiment.rate", "unknown key"),
     "watchdog_short.toml": (
         "watchdog_short.toml",
