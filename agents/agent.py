@@ -45,7 +45,6 @@ ticks up to ``k``):
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import queue
@@ -54,24 +53,36 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
 from types import FrameType
 from typing import Any
 
 import numpy as np
 import zenoh
 from hilswarm.agents import bus
-from hilswarm.agents.control import ControlModel
+from hilswarm.agents.agent_config import (  # also this module's interface
+    AgentConfig,
+    AgentConfigError,
+    AgentHardware,
+    build_hardware,
+)
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.lifecycle import AgentLifecycle
-from hilswarm.agents.link.url import board_for_url, link_scheme
-from hilswarm.agents.registry import resolve_controller, resolve_vehicle
 from hilswarm.agents.telemetry import TelemetryBatcher
 
 logger = logging.getLogger(__name__)
 
-#: Board watchdog when the experiment gives none [s].
-DEFAULT_WATCHDOG_S = 0.5
+__all__ = [
+    "MANAGER_NAME",
+    "Agent",
+    "AgentConfig",
+    "AgentConfigError",
+    "AgentHardware",
+    "StopRequestedError",
+    "build_hardware",
+    "main",
+    "run_agent",
+]
+
 #: How long an agent waits for the router, its publishers' subscribers and the manager [s].
 DEFAULT_STARTUP_TIMEOUT_S = 20.0
 #: Realtime: a tick message later than this many periods after its schedule is skipped.
@@ -87,10 +98,6 @@ MAX_NEIGHBOUR_HISTORY = 2048
 DUPLICATE_CHANNELS = ("y", "u", "x_hat")
 
 
-class AgentConfigError(HilswarmError, ValueError):
-    """An agent configuration (JSON or fields) is malformed."""
-
-
 class StopRequestedError(HilswarmError, RuntimeError):
     """The agent was told to stop (signal, lost manager) before it was running.
 
@@ -102,165 +109,6 @@ class StopRequestedError(HilswarmError, RuntimeError):
     def __init__(self, message: str, *, orderly: bool = False) -> None:
         super().__init__(message)
         self.orderly = orderly
-
-
-@dataclass(frozen=True)
-class AgentConfig:
-    """Everything one agent process needs (built by the orchestrator from the experiment).
-
-    Attributes:
-        experiment: experiment name (bus key prefix).
-        name: this agent's name.
-        agent_names: every agent of the experiment, in graph order (tick messages name lost
-            agents by index in this tuple).
-        neighbours: agents whose output this agent receives (row of the adjacency matrix).
-        vehicle: vehicle registry name or ``"package.module:Class"``.
-        link: board link URL, or ``None`` for vehicles that need no board.
-        controller: controller registry name or ``"package.module:Class"``.
-        params: controller parameters.
-        vehicle_params: vehicle keyword parameters.
-        pinout: pin overrides (device -> role -> pin).
-        initial_state: initial state of the simulated plant (plant units).
-        calibration: calibration file path or ``None``.
-        dt: control period [s].
-        watchdog_s: board watchdog timeout [s] (``None``: :data:`DEFAULT_WATCHDOG_S`).
-        seed: seed for simulated sensors (mocap noise), or ``None``.
-        mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
-        mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
-        mode: ``"lockstep"`` or ``"realtime"`` (how released ticks are run, see the module
-            docstring).
-    """
-
-    experiment: str
-    name: str
-    agent_names: tuple[str, ...]
-    neighbours: tuple[str, ...]
-    vehicle: str
-    link: str | None
-    controller: str
-    dt: float
-    params: dict[str, Any] = field(default_factory=dict)
-    vehicle_params: dict[str, Any] = field(default_factory=dict)
-    pinout: dict[str, dict[str, int | str]] = field(default_factory=dict)
-    initial_state: tuple[float, ...] = ()
-    calibration: str | None = None
-    watchdog_s: float | None = None
-    seed: int | None = None
-    mocap_noise_std_m: float = 0.0
-    mocap_noise_std_rad: float = 0.0
-    mode: str = "lockstep"
-
-    def __post_init__(self) -> None:
-        bus.check_key_name(self.experiment, what="experiment name")
-        bus.check_key_name(self.name, what="agent name")
-        if self.name not in self.agent_names:
-            raise AgentConfigError(
-                f"agent {self.name!r} is not in the experiment's agents {self.agent_names}"
-            )
-        unknown = [n for n in self.neighbours if n not in self.agent_names]
-        if unknown:
-            raise AgentConfigError(f"agent {self.name!r}: unknown neighbours {unknown}")
-        if self.name in self.neighbours:
-            raise AgentConfigError(f"agent {self.name!r} lists itself as its own neighbour")
-        if not (isinstance(self.dt, int | float) and math.isfinite(self.dt) and self.dt > 0):
-            raise AgentConfigError(f"agent {self.name!r}: dt must be > 0 [s], got {self.dt!r}")
-        if self.mode not in ("lockstep", "realtime"):
-            raise AgentConfigError(
-                f"agent {self.name!r}: mode must be 'lockstep' or 'realtime', got {self.mode!r}"
-            )
-
-    @property
-    def index(self) -> int:
-        """Index of this agent in :attr:`agent_names`."""
-        return self.agent_names.index(self.name)
-
-    def to_json(self) -> str:
-        """Serialise (the launcher passes this on the agent's command line)."""
-        return json.dumps(asdict(self))
-
-    @classmethod
-    def from_json(cls, text: str) -> AgentConfig:
-        """Inverse of :meth:`to_json` (raises :class:`AgentConfigError`)."""
-        try:
-            data = json.loads(text)
-            data["agent_names"] = tuple(data["agent_names"])
-            data["neighbours"] = tuple(data["neighbours"])
-            data["initial_state"] = tuple(data.get("initial_state", ()))
-            return cls(**data)
-        except (ValueError, KeyError, TypeError) as exc:
-            raise AgentConfigError(f"bad agent configuration JSON: {exc}") from exc
-
-
-# ---------------------------------------------------------------------------------------------
-# Building the vehicle, board and controller
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class AgentHardware:
-    """The vehicle, its board (or ``None``) and its control model."""
-
-    vehicle: Any
-    board: Any | None
-    model: Any
-
-
-def build_hardware(config: AgentConfig) -> AgentHardware:
-    """Build the vehicle, open/configure its board and build the controller's ControlModel.
-
-    For ``sim://`` and ``simavr://`` links the board drives the vehicle's own simulated
-    hardware (``vehicle.simulated_hardware``) and a simulated mocap follows that plant.
-    """
-    vehicle_cls = resolve_vehicle(config.vehicle)
-    vehicle = vehicle_cls(
-        name=config.name,
-        pinout=config.pinout or None,
-        params=config.vehicle_params,
-        calibration=config.calibration,
-        initial_state=list(config.initial_state) or None,
-        dt=config.dt,
-    )
-    calibration = getattr(vehicle, "calibration", None)
-    if calibration is not None:  # the inverse curves now, so that no tick pays for them
-        calibration.prepare_inverse()
-    board = None
-    if getattr(vehicle, "needs_board", True):
-        board = _open_board(config, vehicle)
-    controller = resolve_controller(config.controller)()
-    model = ControlModel(
-        controller,
-        dt=config.dt,
-        n_inputs=int(vehicle.n_inputs),
-        n_outputs=int(vehicle.n_outputs),
-        params=config.params,
-    )
-    return AgentHardware(vehicle=vehicle, board=board, model=model)
-
-
-def _open_board(config: AgentConfig, vehicle: Any) -> Any:
-    if not config.link:
-        raise AgentConfigError(
-            f"agent {config.name!r}: vehicle {config.vehicle!r} needs a board but the "
-            'experiment gives no link URL (e.g. link = "sim://")'
-        )
-    options: dict[str, Any] = {}
-    if link_scheme(config.link) in ("sim", "simavr"):
-        plant = vehicle.simulated_hardware(
-            initial_state=list(config.initial_state) or None, dt=config.dt
-        )
-        options = {"plant": plant, "dt": config.dt}
-        if plant is not None:
-            from hilswarm.agents.sim.mocap import SimulatedMocap  # noqa: PLC0415 - sim only
-
-            vehicle.pose_source = SimulatedMocap(
-                plant,
-                noise_std_m=config.mocap_noise_std_m,
-                noise_std_rad=config.mocap_noise_std_rad,
-                seed=(config.seed or 0) + config.index,  # distinct, reproducible per agent
-            )
-    board = board_for_url(config.link, **options)
-    vehicle.connect(board, watchdog_s=config.watchdog_s or DEFAULT_WATCHDOG_S)
-    return board
 
 
 # ---------------------------------------------------------------------------------------------

@@ -30,9 +30,10 @@ from pathlib import Path
 from hilswarm.agents import bus
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
-from hilswarm.orchestrator.manager import InstanceManager, RunSummary
+from hilswarm.orchestrator.manager import InstanceManager
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.run_summary import RunSummary
 
 
 def ring_experiment(

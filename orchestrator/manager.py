@@ -35,8 +35,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -55,7 +54,9 @@ from hilswarm.orchestrator.record_stream import (
     y_frame,
 )
 from hilswarm.orchestrator.recorder import Recorder
+from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
+from hilswarm.orchestrator.tick_window import TickAccount, TickWindow
 
 logger = logging.getLogger(__name__)
 
@@ -75,142 +76,6 @@ _K = struct.Struct("<q")
 
 class ManagerError(Exception):
     """Base of the manager's own errors (the orchestrator reports them and exits 1)."""
-
-
-@dataclass
-class RunSummary:
-    """What happened in one run.
-
-    Attributes:
-        experiment: experiment name.
-        mode: ``lockstep`` or ``realtime``.
-        ticks: ticks completed (every live agent answered).
-        planned_ticks: ticks the experiment asked for.
-        wall_s: wall-clock length of the ticking phase [s].
-        stop_reason: why the run ended (``"completed"``, ``"interrupted"``, ...).
-        lost: agents lost (killed, hung), in order of loss.
-        late: late answers per agent (realtime).
-        late_ticks: ticks not complete by the next tick's deadline (realtime).
-        completion_s: per tick, completion time after its scheduled time [s].
-        failed: True when the run could not do what was asked (lost agent with policy stop,
-            start-up failure).
-    """
-
-    experiment: str
-    mode: str
-    ticks: int = 0
-    planned_ticks: int = 0
-    wall_s: float = 0.0
-    stop_reason: str = ""
-    lost: list[str] = field(default_factory=list)
-    late: dict[str, int] = field(default_factory=dict)
-    late_ticks: int = 0
-    completion_s: list[float] = field(default_factory=list)
-    failed: bool = False
-
-    @property
-    def speed(self) -> float:
-        """Experiment time per wall-clock time (lockstep speed-up; ~1 in realtime)."""
-        return 0.0 if self.wall_s <= 0 else self.ticks * self._dt / self.wall_s
-
-    _dt: float = 0.0
-
-    def completion_percentiles(self) -> tuple[float, float]:
-        """(p50, p99) of tick completion times [s] over every tick that was due.
-
-        A late tick (not complete when the next one was due) counts as ``inf``: when more than
-        1 % of the ticks were late, p99 is ``inf`` (NaN when no tick was accounted).
-        """
-        if not self.completion_s and not self.late_ticks:
-            return math.nan, math.nan
-        values = np.concatenate([np.asarray(self.completion_s), np.full(self.late_ticks, np.inf)])
-        p50, p99 = np.percentile(values, [50, 99], method="inverted_cdf")
-        return float(p50), float(p99)
-
-    def text(self) -> str:
-        """A few human lines."""
-        p50, p99 = self.completion_percentiles()
-        lines = [
-            f"experiment {self.experiment!r} ({self.mode}): {self.ticks}/{self.planned_ticks} "
-            f"ticks in {self.wall_s:.2f} s wall clock ({self.speed:.1f}x real time); "
-            f"stopped: {self.stop_reason}",
-            f"tick completion p50 {_ms(p50)}, p99 {_ms(p99)}; late ticks {self.late_ticks}",
-        ]
-        late = {name: n for name, n in self.late.items() if n}
-        if late:
-            lines.append("late answers: " + ", ".join(f"{n}={c}" for n, c in late.items()))
-        if self.lost:
-            lines.append("lost agents: " + ", ".join(self.lost))
-        return "\n".join(lines)
-
-
-def _ms(seconds: float) -> str:
-    """``1.23 ms``, or ``late`` for an infinite completion time."""
-    return "late" if math.isinf(seconds) else f"{seconds * 1e3:.2f} ms"
-
-
-class _Account(NamedTuple):
-    """A closed tick: index, scheduled/sent/done times [s, manager clock], late agents, and
-    per agent its answer time after the send [s] (NaN: none; ``None``: not recorded)."""
-
-    k: int
-    scheduled: float
-    sent: float
-    done: float
-    late: list[int]
-    answers: np.ndarray | None
-
-
-class _Ticks:
-    """The ticks in flight, shared by the bus callbacks and the ticking thread (under a lock).
-
-    Ticks ``base .. released`` are open (sent, not every answer in); at most ``window`` of
-    them (realtime: one). Arrays are indexed ``[k % window, agent]`` and preallocated:
-    recording an answer is a few element stores.
-    """
-
-    def __init__(self, n: int, window: int) -> None:
-        self.window = window
-        self.base = 0  # oldest open tick
-        self.released = -1  # newest tick sent
-        self.last_progress = 0.0
-        self.expected = n
-        self.count = np.zeros(window, dtype=np.int64)
-        self.scheduled = np.zeros(window)
-        self.sent = np.zeros(window)
-        self.done = np.zeros(window)
-        self.arrived = np.zeros((window, n), dtype=bool)
-        self.answered_at = np.full((window, n), np.nan)  # manager clock [s]
-        self.lost = np.zeros(n, dtype=bool)
-
-    @property
-    def k(self) -> int:
-        """The newest tick sent (-1 before the first)."""
-        return self.released
-
-    def release(self, k: int, scheduled: float, sent: float) -> None:
-        """Tick ``k`` (``released + 1``), scheduled at ``scheduled``, is sent at ``sent`` [s]."""
-        slot = k % self.window
-        self.released = k
-        self.scheduled[slot], self.sent[slot] = scheduled, sent
-        self.last_progress = max(self.last_progress, sent)
-        self.count[slot] = 0
-        self.arrived[slot] = False
-        self.answered_at[slot] = np.nan
-
-    def base_complete(self) -> bool:
-        """Every expected answer of the oldest open tick is in."""
-        return self.base <= self.released and self.count[self.base % self.window] >= self.expected
-
-    def unanswered(self) -> list[int]:
-        """Agents (not lost) whose y of the oldest open tick is not in."""
-        slot = self.base % self.window
-        return np.flatnonzero(~(self.arrived[slot] | self.lost)).tolist()
-
-    def recount(self) -> None:
-        """Recompute what is expected after agents were lost."""
-        self.expected = int((~self.lost).sum())
-        self.count[:] = (self.arrived & ~self.lost).sum(axis=1)
 
 
 class InstanceManager:
@@ -281,7 +146,7 @@ class InstanceManager:
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
         self.window = experiment.lockstep_window if self.mode == "lockstep" else 1
-        self._tick = _Ticks(self.n, self.window)
+        self._tick = TickWindow(self.n, self.window)
         self._frames: list[bytes] = []
         self.agent_states: dict[str, str] = {}
         # Rare events for the ticking thread: liveliness, control, stop, safe, lockstep done.
@@ -673,7 +538,7 @@ class InstanceManager:
                 tick.release(j, scheduled, now)
         self._send_tick(k, sorted(self.lost))
 
-    def _close_base(self, late: list[int], complete: bool) -> _Account:
+    def _close_base(self, late: list[int], complete: bool) -> TickAccount:
         """The account of the oldest open tick, which is closed (call under the lock)."""
         tick = self._tick
         slot = tick.base % tick.window
@@ -684,11 +549,11 @@ class InstanceManager:
             done = float(np.nanmax(counted)) if np.isfinite(counted).any() else self._clock()
         sent = float(tick.sent[slot])
         answers = answered - sent if self._record_ticks else None
-        account = _Account(tick.base, float(tick.scheduled[slot]), sent, done, late, answers)
+        account = TickAccount(tick.base, float(tick.scheduled[slot]), sent, done, late, answers)
         tick.base += 1
         return account
 
-    def _account(self, account: _Account) -> None:
+    def _account(self, account: TickAccount) -> None:
         """Record the timing account of a tick (times on the manager clock [s])."""
         k, scheduled = account.k, account.scheduled
         completion = account.done - scheduled

@@ -33,9 +33,9 @@ from hilswarm.orchestrator.manager import (
     DEFAULT_START_TIMEOUT_S,
     InstanceManager,
     ManagerError,
-    RunSummary,
 )
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay
 
 HELP = "run an experiment file (one process per agent, recorded to MCAP)"

@@ -1,0 +1,75 @@
+"""The instance manager's ticks in flight, and the account of a closed tick.
+
+Shared by the manager's bus callbacks (which store each agent's answer) and its ticking thread
+(which releases and closes ticks); every access is under the manager's lock.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+
+class TickAccount(NamedTuple):
+    """A closed tick: index, scheduled/sent/done times [s, manager clock], late agents, and
+    per agent its answer time after the send [s] (NaN: none; ``None``: not recorded)."""
+
+    k: int
+    scheduled: float
+    sent: float
+    done: float
+    late: list[int]
+    answers: np.ndarray | None
+
+
+class TickWindow:
+    """The ticks in flight, shared by the bus callbacks and the ticking thread (under a lock).
+
+    Ticks ``base .. released`` are open (sent, not every answer in); at most ``window`` of
+    them (realtime: one). Arrays are indexed ``[k % window, agent]`` and preallocated:
+    recording an answer is a few element stores.
+    """
+
+    def __init__(self, n: int, window: int) -> None:
+        self.window = window
+        self.base = 0  # oldest open tick
+        self.released = -1  # newest tick sent
+        self.last_progress = 0.0
+        self.expected = n
+        self.count = np.zeros(window, dtype=np.int64)
+        self.scheduled = np.zeros(window)
+        self.sent = np.zeros(window)
+        self.done = np.zeros(window)
+        self.arrived = np.zeros((window, n), dtype=bool)
+        self.answered_at = np.full((window, n), np.nan)  # manager clock [s]
+        self.lost = np.zeros(n, dtype=bool)
+
+    @property
+    def k(self) -> int:
+        """The newest tick sent (-1 before the first)."""
+        return self.released
+
+    def release(self, k: int, scheduled: float, sent: float) -> None:
+        """Tick ``k`` (``released + 1``), scheduled at ``scheduled``, is sent at ``sent`` [s]."""
+        slot = k % self.window
+        self.released = k
+        self.scheduled[slot], self.sent[slot] = scheduled, sent
+        self.last_progress = max(self.last_progress, sent)
+        self.count[slot] = 0
+        self.arrived[slot] = False
+        self.answered_at[slot] = np.nan
+
+    def base_complete(self) -> bool:
+        """Every expected answer of the oldest open tick is in."""
+        return self.base <= self.released and self.count[self.base % self.window] >= self.expected
+
+    def unanswered(self) -> list[int]:
+        """Agents (not lost) whose y of the oldest open tick is not in."""
+        slot = self.base % self.window
+        return np.flatnonzero(~(self.arrived[slot] | self.lost)).tolist()
+
+    def recount(self) -> None:
+        """Recompute what is expected after agents were lost."""
+        self.expected = int((~self.lost).sum())
+        self.count[:] = (self.arrived & ~self.lost).sum(axis=1)
