@@ -10,8 +10,11 @@ Writing: :class:`McapJsonWriter` registers one channel per topic and writes
   ``/<agent>/status``.
 
 Message encoding is ``json`` and schema encoding ``jsonschema`` (what Foxglove reads). Chunks are
-small (32 KiB by default) and written straight to the file descriptor, so a crashed process loses
-at most the chunk in progress. JSON has no NaN/Infinity: non-finite numbers become ``null``.
+small (32 KiB by default, zstd level 1 by default) and written straight to the file descriptor,
+so a crashed process loses at most the chunk in progress. JSON has no NaN/Infinity: non-finite
+numbers become ``null``. The MCAP records are written by :class:`ChunkedMcapWriter`, which
+writes what the ``mcap`` library's ``Writer`` writes at a fraction of its cost per message;
+:meth:`McapJsonWriter.write_floats_many` is the hot path of a run recording.
 
 Reading: :func:`iter_messages` yields ``(topic, log_time_ns, message)`` in file order and stops
 cleanly at the first incomplete record of a truncated file; :func:`read_schemas` returns the
@@ -25,19 +28,28 @@ import json
 import logging
 import math
 import os
+import struct
+import sys
+import zlib
+from array import array
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import IO, Any, Self
 
+import lz4.frame
 import numpy as np
+import zstandard
 from hilswarm.agents.errors import RecordingError
+from mcap.data_stream import RecordBuilder
 from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
 from mcap.reader import StreamReader
 from mcap.records import Channel as McapChannel
+from mcap.records import ChunkIndex, DataEnd, Footer, Header, Statistics, SummaryOffset
 from mcap.records import Message as McapMessage
 from mcap.records import Schema as McapSchema
-from mcap.writer import CompressionType, Writer
+from mcap.writer import MCAP0_MAGIC, Writer
 from numpy.typing import ArrayLike
 
 logger = logging.getLogger(__name__)
@@ -48,11 +60,10 @@ DEFAULT_CHUNK_SIZE = 32 * 1024
 #: Keys every vector message has.
 BASE_KEYS = ("k", "t", "values")
 
-_COMPRESSIONS = {
-    "zstd": CompressionType.ZSTD,
-    "lz4": CompressionType.LZ4,
-    "none": CompressionType.NONE,
-}
+#: Chunk compressions a writer offers.
+COMPRESSIONS = ("zstd", "lz4", "none")
+#: Chunk compression of recordings (see ``docs/recording.md`` for the measurement).
+DEFAULT_COMPRESSION = "zstd"
 
 #: Schema of a free-form JSON topic registered without a schema.
 ANY_OBJECT_SCHEMA: dict[str, Any] = {"type": "object"}
@@ -150,42 +161,384 @@ def json_safe(obj: Any) -> Any:
 
 
 class _DirectFile:
-    """A write-only file whose every write goes straight to the OS (no user-space buffer).
-
-    Not an ``io.RawIOBase`` on purpose: the mcap ``Writer`` would wrap one in a
-    ``BufferedWriter`` and keep the data in the process until the end.
-    """
+    """A write-only file whose every write goes straight to the OS (no user-space buffer)."""
 
     def __init__(self, path: Path) -> None:
         self._raw = open(path, "wb", buffering=0)  # noqa: SIM115
+        self.name = str(path)
 
     def write(self, data: bytes) -> int:
         view = memoryview(data)
         while view:
             written = self._raw.write(view)
             if written is None:
-                raise OSError(f"non-blocking write to {self._raw.name} did not proceed")
+                raise OSError(f"non-blocking write to {self.name} did not proceed")
             view = view[written:]
         return len(data)
-
-    def tell(self) -> int:
-        return self._raw.tell()
-
-    def flush(self) -> None:
-        self._raw.flush()
 
     def close(self) -> None:
         self._raw.close()
 
 
-class _Topic:
-    __slots__ = ("channel_id", "fields", "quoted_fields", "schema")
+#: MCAP record opcodes written by :class:`ChunkedMcapWriter` itself.
+_OP_MESSAGE = int(Opcode.MESSAGE)
+_OP_CHUNK = int(Opcode.CHUNK)
+_OP_MESSAGE_INDEX = int(Opcode.MESSAGE_INDEX)
+#: Message record head: opcode, record length, channel id, sequence, log and publish time.
+_MESSAGE_HEAD = struct.Struct("<BQHIQQ")
+_MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # the record length beside the data [bytes]
+_MESSAGE_HEAD_SIZE = _MESSAGE_HEAD.size
+_pack_message_head = _MESSAGE_HEAD.pack
+#: Chunk record head up to its compression name: opcode, length, start/end time, size, crc.
+_CHUNK_HEAD = struct.Struct("<BQQQQI")
+_U64 = struct.Struct("<Q")
+#: Message index record head: opcode, record length, channel id, byte length of the entries.
+_INDEX_HEAD = struct.Struct("<BQHI")
+_INDEX_HEAD_SIZE = _INDEX_HEAD.size
+#: Layouts of whole message index records of up to this many numbers (two per entry).
+_INDEX_RECORD_MAX = 64
+_INDEX_RECORDS: dict[int, struct.Struct] = {}
+_LITTLE_ENDIAN = sys.byteorder == "little"
 
-    def __init__(self, channel_id: int, schema: dict[str, Any], fields: tuple[str, ...] | None):
+
+def _index_record(channel_id: int, entries: list[int]) -> bytes:
+    """A message index record: ``entries`` holds log time [ns] and offset of each message."""
+    n = len(entries)
+    if n > _INDEX_RECORD_MAX:
+        table = array("Q", entries)
+        if not _LITTLE_ENDIAN:  # pragma: no cover - MCAP is little-endian
+            table.byteswap()
+        return _INDEX_HEAD.pack(_OP_MESSAGE_INDEX, 6 + 8 * n, channel_id, 8 * n) + table.tobytes()
+    layout = _INDEX_RECORDS.get(n)
+    if layout is None:
+        layout = _INDEX_RECORDS[n] = struct.Struct(f"<BQHI{n}Q")
+    return layout.pack(_OP_MESSAGE_INDEX, 6 + 8 * n, channel_id, 8 * n, *entries)
+
+
+#: zstd level of recordings: on their small JSON chunks level 1 compresses as well as the
+#: ``mcap`` library's level 3 in half the time (``benchmarks/record_stream.py``,
+#: ``docs/recording.md``). The level is not part of the file: any reader decompresses it.
+ZSTD_LEVEL = 1
+
+
+def _compressor(compression: str, zstd_level: int) -> tuple[str, Any]:
+    """The chunk compression's name in the file and its ``bytes -> bytes`` function."""
+    if compression == "zstd":
+        return "zstd", zstandard.ZstdCompressor(level=zstd_level).compress
+    if compression == "lz4":
+        return "lz4", lz4.frame.compress
+    return "", None
+
+
+class ChunkedMcapWriter:
+    """A lean MCAP writer: chunked, indexed, with summary, for many small messages.
+
+    Writes what the ``mcap`` library's ``Writer`` writes with its defaults (every index,
+    statistics, repeated schemas and channels, summary offsets, chunk CRCs, no data-section
+    CRC), record for record, so its files are the library's files (byte for byte with
+    ``zstd_level=3``); but a message costs one ``struct.pack`` and a few list appends instead
+    of a ``Message`` object and a dozen ``BytesIO`` writes. Schemas and channels go into the
+    chunk in progress, like the library puts them; each finished chunk is written to the OS in
+    one ``write`` together with its message indexes, so a killed process leaves every finished
+    chunk readable.
+
+    Args:
+        file: where the bytes go; ``write(bytes)`` must write them all.
+        chunk_size: a chunk is finished once its records exceed this many bytes.
+        compression: ``"zstd"``, ``"lz4"`` or ``"none"``.
+        profile: the header's profile.
+        library: the header's library name.
+        zstd_level: the zstd compression level (the library's is 3).
+    """
+
+    def __init__(
+        self,
+        file: Any,
+        *,
+        chunk_size: int,
+        compression: str,
+        profile: str = "",
+        library: str = "hilswarm",
+        zstd_level: int = ZSTD_LEVEL,
+    ) -> None:
+        if not isinstance(chunk_size, int) or chunk_size < 1:
+            raise RecordingError(f"chunk_size must be a positive int [bytes], got {chunk_size!r}")
+        if compression not in COMPRESSIONS:
+            raise RecordingError(
+                f"compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}"
+            )
+        self._file = file
+        self._chunk_size = chunk_size
+        self.compression, self._compress = _compressor(compression, zstd_level)
+        name = self.compression.encode()
+        self._compression_field = struct.pack("<I", len(name)) + name
+        self._parts: list[bytes] = []  # records of the chunk in progress
+        self._size = 0  # their length [bytes]
+        self._indexes: list[list[int]] = [[]]  # per channel id: log time, offset, ...
+        self._touched: list[int] = []  # channel ids with messages in this chunk, in order
+        self._schemas: list[McapSchema] = []
+        self._channels: list[McapChannel] = []
+        self._counts: list[int] = [0]  # messages per channel id
+        self._count_order: list[int] = []  # channel ids in order of their first message
+        self._times: list[int] = []  # log times of the chunk's messages [ns]
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._start_time = 0
+        self._end_time = 0
+        self.message_count = 0
+        self._position = 0  # bytes written to the file
+        builder = RecordBuilder()
+        Header(profile=profile, library=library).write(builder)
+        self._write(MCAP0_MAGIC + builder.end())
+
+    def _write(self, data: bytes) -> None:
+        self._file.write(data)
+        self._position += len(data)
+
+    def _add_record(self, record: McapSchema | McapChannel) -> None:
+        builder = RecordBuilder()
+        record.write(builder)
+        data = builder.end()
+        self._parts.append(data)
+        self._size += len(data)
+        if self._size > self._chunk_size:
+            self.finish_chunk()
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        """Register a schema (recorded in the chunk in progress); returns its id (1, 2, ...)."""
+        schema = McapSchema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
+        self._schemas.append(schema)
+        self._add_record(schema)
+        return schema.id
+
+    def register_channel(
+        self,
+        topic: str,
+        message_encoding: str,
+        schema_id: int,
+        metadata: Mapping[str, str] | None = None,
+    ) -> int:
+        """Register a channel (recorded in the chunk in progress); returns its id (1, 2, ...)."""
+        channel = McapChannel(
+            id=len(self._channels) + 1,
+            topic=topic,
+            message_encoding=message_encoding,
+            schema_id=schema_id,
+            metadata=dict(metadata or {}),
+        )
+        if channel.id > 0xFFFF:
+            raise RecordingError(f"too many channels for MCAP (topic {topic})")
+        self._channels.append(channel)
+        self._indexes.append([])
+        self._counts.append(0)
+        self._add_record(channel)
+        return channel.id
+
+    def add_message(self, channel_id: int, data: bytes, log_time: int, publish_time: int) -> None:
+        """Add a message to the chunk in progress (times [ns], non-negative ints).
+
+        The sequence number is the message's place in the file (modulo 2**32).
+        """
+        offset = self._size
+        size = len(data)
+        self._parts += (
+            _pack_message_head(
+                _OP_MESSAGE,
+                _MESSAGE_FIXED + size,
+                channel_id,
+                self.message_count & 0xFFFFFFFF,
+                log_time,
+                publish_time,
+            ),
+            data,
+        )
+        index = self._indexes[channel_id]
+        if not index:
+            self._touched.append(channel_id)
+        index += (log_time, offset)
+        self._times.append(log_time)
+        self.message_count += 1
+        self._size = offset = offset + _MESSAGE_HEAD_SIZE + size
+        if offset > self._chunk_size:
+            self.finish_chunk()
+
+    def finish_chunk(self) -> None:
+        """Write the chunk in progress and its message indexes (nothing without messages)."""
+        if not self._touched:  # no message in this chunk
+            return
+        records = b"".join(self._parts)
+        times = self._times
+        start, end = min(times), max(times)
+        data = records if self._compress is None else self._compress(records)
+        head = _CHUNK_HEAD.pack(
+            _OP_CHUNK,
+            8 + 8 + 8 + 4 + len(self._compression_field) + 8 + len(data),
+            start,
+            end,
+            len(records),
+            zlib.crc32(records),
+        )
+        chunk = b"".join((head, self._compression_field, _U64.pack(len(data)), data))
+        chunk_start = self._position
+        index_start = position = chunk_start + len(chunk)
+        # One message index record per channel of the chunk, in order of first message.
+        parts = [chunk]
+        index_offsets: dict[int, int] = {}
+        indexes, counts, order = self._indexes, self._counts, self._count_order
+        for channel_id in self._touched:
+            entries = indexes[channel_id]
+            n = len(entries)  # two per message: log time, offset
+            parts.append(_index_record(channel_id, entries))
+            index_offsets[channel_id] = position
+            position += _INDEX_HEAD_SIZE + 8 * n
+            if not counts[channel_id]:
+                order.append(channel_id)
+            counts[channel_id] += n >> 1
+            entries.clear()
+        self._write(b"".join(parts))
+        if not self._chunk_indexes:
+            self._start_time = start
+        else:
+            self._start_time = min(self._start_time, start)
+        self._end_time = max(self._end_time, end)
+        self._chunk_indexes.append(
+            ChunkIndex(
+                message_start_time=start,
+                message_end_time=end,
+                chunk_start_offset=chunk_start,
+                chunk_length=len(chunk),
+                message_index_offsets=index_offsets,
+                message_index_length=position - index_start,
+                compression=self.compression,
+                compressed_size=len(data),
+                uncompressed_size=len(records),
+            )
+        )
+        self._parts = []
+        self._size = 0
+        self._touched = []
+        self._times = []
+
+    def finish(self) -> None:
+        """Write the last chunk, the data end, the summary and the footer (as the library)."""
+        self.finish_chunk()
+        builder = RecordBuilder()
+        DataEnd(0).write(builder)
+        self._write(builder.end())
+        summary_start = self._position
+        summary = RecordBuilder()
+        offsets: list[SummaryOffset] = []
+
+        def group(opcode: int, records: Iterable[Any]) -> None:
+            group_start = summary.count
+            for record in records:
+                record.write(summary)
+            offsets.append(
+                SummaryOffset(
+                    group_opcode=opcode,
+                    group_start=summary_start + group_start,
+                    group_length=summary.count - group_start,
+                )
+            )
+
+        statistics = Statistics(
+            attachment_count=0,
+            channel_count=len(self._channels),
+            channel_message_counts={i: self._counts[i] for i in self._count_order},
+            chunk_count=len(self._chunk_indexes),
+            message_count=self.message_count,
+            metadata_count=0,
+            message_start_time=self._start_time,
+            message_end_time=self._end_time,
+            schema_count=len(self._schemas),
+        )
+        group(Opcode.SCHEMA, self._schemas)
+        group(Opcode.CHANNEL, self._channels)
+        group(Opcode.STATISTICS, (statistics,))
+        group(Opcode.CHUNK_INDEX, self._chunk_indexes)
+        group(Opcode.ATTACHMENT_INDEX, ())
+        group(Opcode.METADATA_INDEX, ())
+        summary_offset_start = summary_start + summary.count
+        for offset in offsets:
+            offset.write(summary)
+        summary_data = summary.end()
+        crc = zlib.crc32(summary_data)
+        crc = zlib.crc32(
+            struct.pack("<BQQQ", Opcode.FOOTER, 8 + 8 + 4, summary_start, summary_offset_start),
+            crc,
+        )
+        builder = RecordBuilder()
+        Footer(
+            summary_start=summary_start, summary_offset_start=summary_offset_start, summary_crc=crc
+        ).write(builder)
+        self._write(summary_data + builder.end() + MCAP0_MAGIC)
+
+
+#: JSON text of recent experiment times ``t``: every agent's messages of a tick share their
+#: ``t``, and formatting a float is the dearest part of a message. Bounded by
+#: :data:`_T_TEXTS_SIZE`; cleared when full.
+_T_TEXTS: dict[float, str] = {}
+_T_TEXTS_SIZE = 256
+
+
+def _t_text(t: float) -> str:
+    """``t`` as JSON text (``null`` when not finite), remembered in :data:`_T_TEXTS`."""
+    text = float.__repr__(float(t))
+    if "n" in text:  # only "nan" and "inf" contain an "n"
+        return "null"
+    if t:  # not 0.0 or -0.0, which are equal keys with two texts
+        if len(_T_TEXTS) >= _T_TEXTS_SIZE:
+            _T_TEXTS.clear()
+        _T_TEXTS[t] = text
+    return text
+
+
+class _Topic:
+    """A registered topic: its channel, schema, field names and JSON template."""
+
+    __slots__ = ("channel_id", "fields", "name", "quoted_fields", "schema", "template", "width")
+
+    def __init__(
+        self, name: str, channel_id: int, schema: dict[str, Any], fields: tuple[str, ...] | None
+    ) -> None:
+        self.name = name
         self.channel_id = channel_id
         self.schema = schema
         self.fields = fields
+        self.width = None if fields is None else len(fields)
         self.quoted_fields = None if fields is None else tuple(json.dumps(f) for f in fields)
+        # The JSON text of a message with "%" holes: k, t, the values and each named field.
+        named = "".join(f",{name.replace('%', '%%')}:%s" for name in self.quoted_fields or ())
+        self.template = '{"k":%d,"t":%s,"values":[%s]' + named + "}"
+
+    def vector_bytes(self, k: int, t: float, values: Sequence[float]) -> bytes:
+        """:func:`vector_json` of a message of this topic, from its template.
+
+        Raises:
+            RecordingError: not one value per field, or values that are not floats.
+        """
+        width = self.width
+        try:
+            if width is None:  # values only: no list of the numbers needed
+                text = ",".join(map(float.__repr__, values))
+                numbers: list[str] = []
+            elif len(values) == width:
+                numbers = list(map(float.__repr__, values))
+                text = ",".join(numbers)
+            else:
+                raise RecordingError(
+                    f"topic {self.name}: expected {width} values {self.fields}, got {len(values)}"
+                )
+            t_text = _T_TEXTS.get(t) or _t_text(t)
+        except TypeError as exc:
+            raise RecordingError(
+                f"topic {self.name}: values must be floats, got {values!r}"
+            ) from exc
+        if "n" in text:  # a NaN or an infinity: JSON has neither
+            numbers = ["null" if "n" in number else number for number in text.split(",")]
+            text = ",".join(numbers)
+        if width is None:
+            return (self.template % (int(k), t_text, text)).encode()
+        return (self.template % (int(k), t_text, text, *numbers)).encode()
 
 
 class McapJsonWriter:
@@ -195,7 +548,8 @@ class McapJsonWriter:
         path: file to create (overwritten if it exists).
         chunk_size: target chunk size [bytes]; a chunk is written to the file descriptor as soon
             as it is full, so a crash loses at most this much.
-        compression: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
+        compression: ``"zstd"`` (default, :data:`DEFAULT_COMPRESSION`), ``"lz4"`` or
+            ``"none"``.
         profile: the MCAP header profile (empty: none).
 
     Use as a context manager, or call :meth:`close` (which writes the summary and footer).
@@ -206,24 +560,31 @@ class McapJsonWriter:
         path: str | os.PathLike[str],
         *,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
-        compression: str = "zstd",
+        compression: str = DEFAULT_COMPRESSION,
         profile: str = "",
     ) -> None:
         if not isinstance(chunk_size, int) or chunk_size < 1:
             raise RecordingError(f"chunk_size must be a positive int [bytes], got {chunk_size!r}")
-        if compression not in _COMPRESSIONS:
+        if compression not in COMPRESSIONS:
             raise RecordingError(
-                f"compression must be one of {sorted(_COMPRESSIONS)}, got {compression!r}"
+                f"compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}"
             )
         self.path = Path(path)
         self._file = _DirectFile(self.path)
-        self._writer = Writer(
-            self._file, chunk_size=chunk_size, compression=_COMPRESSIONS[compression]
-        )
-        self._writer.start(profile=profile, library="hilswarm")
+        try:
+            self._writer = ChunkedMcapWriter(
+                self._file, chunk_size=chunk_size, compression=compression, profile=profile
+            )
+        except BaseException:
+            self._file.close()
+            raise
         self._topics: dict[str, _Topic] = {}
         self._closed = False
-        self.messages_written = 0
+
+    @property
+    def messages_written(self) -> int:
+        """Messages written so far."""
+        return self._writer.message_count
 
     @property
     def topics(self) -> tuple[str, ...]:
@@ -233,6 +594,11 @@ class McapJsonWriter:
     def has_topic(self, topic: str) -> bool:
         """True if ``topic`` is registered (no copy of :attr:`topics`: cheap per message)."""
         return topic in self._topics
+
+    def topic_fields(self, topic: str) -> tuple[str, ...] | None:
+        """The field names of vector topic ``topic`` (``None``: none, or not registered)."""
+        entry = self._topics.get(topic)
+        return None if entry is None else entry.fields
 
     @property
     def closed(self) -> bool:
@@ -250,7 +616,7 @@ class McapJsonWriter:
         channel_id = self._writer.register_channel(
             topic=topic, message_encoding="json", schema_id=schema_id
         )
-        self._topics[topic] = _Topic(channel_id, schema, fields)
+        self._topics[topic] = _Topic(topic, channel_id, schema, fields)
 
     @staticmethod
     def _check_topic_name(topic: str) -> None:
@@ -373,16 +739,57 @@ class McapJsonWriter:
         entry = self._topics.get(topic)
         if entry is None:
             raise RecordingError(f"topic {topic!r} is not registered: call add_topic() first")
-        if entry.fields is not None and len(values) != len(entry.fields):
-            raise RecordingError(
-                f"topic {topic}: expected {len(entry.fields)} values {entry.fields}, "
-                f"got {len(values)}"
-            )
-        try:
-            data = vector_json(k, t, values, entry.quoted_fields)
-        except TypeError as exc:
-            raise RecordingError(f"topic {topic}: values must be floats, got {values!r}") from exc
-        self._add_encoded(entry.channel_id, data, log_time_ns, publish_time_ns)
+        data = entry.vector_bytes(k, t, values)
+        if type(log_time_ns) is not int or log_time_ns < 0:
+            _check_log_time(log_time_ns)
+            log_time_ns = int(log_time_ns)
+        if publish_time_ns is None:
+            publish_time_ns = log_time_ns
+        else:
+            _check_log_time(publish_time_ns)
+        self._writer.add_message(entry.channel_id, data, log_time_ns, int(publish_time_ns))
+
+    def write_floats_many(
+        self,
+        rows: Iterable[tuple[str, int, float, Sequence[float], int]],
+        *,
+        register: bool = False,
+    ) -> int:
+        """:meth:`write_floats` for many messages, in order (the record stream's hot path).
+
+        Args:
+            rows: per message ``(topic, k, t, values, log_time_ns)``; values are Python floats,
+                ``t`` in [s], the log time (also the publish time) in [ns].
+            register: register topics not seen yet as vector topics without field names
+                (otherwise they are refused).
+
+        Returns:
+            The number of messages written.
+
+        Raises:
+            RecordingError: as :meth:`write_floats`; the messages before the refused one are
+                written, none after it.
+        """
+        self._check_open()
+        topics = self._topics
+        add = self._writer.add_message
+        count = 0
+        for topic, k, t, values, log_time_ns in rows:
+            entry = topics.get(topic)
+            if entry is None:
+                if not register:
+                    raise RecordingError(
+                        f"topic {topic!r} is not registered: call add_topic() first"
+                    )
+                self.add_topic(topic)
+                entry = topics[topic]
+            data = entry.vector_bytes(k, t, values)
+            if type(log_time_ns) is not int or log_time_ns < 0:
+                _check_log_time(log_time_ns)
+                log_time_ns = int(log_time_ns)  # noqa: PLW2901 - a numpy integer
+            add(entry.channel_id, data, log_time_ns, log_time_ns)
+            count += 1
+        return count
 
     def write_json(
         self,
@@ -456,23 +863,19 @@ class McapJsonWriter:
     def _add_encoded(
         self, channel_id: int, data: bytes, log_time_ns: int, publish_time_ns: int | None
     ) -> None:
-        if isinstance(log_time_ns, bool) or not isinstance(log_time_ns, int | np.integer):
-            raise RecordingError(f"log_time_ns must be an int [ns], got {log_time_ns!r}")
-        if log_time_ns < 0:
-            raise RecordingError(f"log_time_ns must be >= 0 [ns], got {log_time_ns}")
-        self._writer.add_message(
-            channel_id=channel_id,
-            log_time=int(log_time_ns),
-            data=data,
-            publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
-            sequence=self.messages_written & 0xFFFFFFFF,
-        )
-        self.messages_written += 1
+        _check_log_time(log_time_ns)
+        log_time = int(log_time_ns)
+        if publish_time_ns is None:
+            publish_time = log_time
+        else:
+            _check_log_time(publish_time_ns)
+            publish_time = int(publish_time_ns)
+        self._writer.add_message(channel_id, data, log_time, publish_time)
 
     def flush(self) -> None:
         """Finish the chunk in progress and hand everything written so far to the OS."""
         self._check_open()
-        self._writer.flush()
+        self._writer.finish_chunk()
 
     def close(self) -> None:
         """Write the last chunk, summary and footer, and close the file (idempotent)."""
@@ -494,6 +897,14 @@ class McapJsonWriter:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def _check_log_time(log_time_ns: Any) -> None:
+    """Raise :class:`RecordingError` unless ``log_time_ns`` is a non-negative int [ns]."""
+    if isinstance(log_time_ns, bool) or not isinstance(log_time_ns, int | np.integer):
+        raise RecordingError(f"log_time_ns must be an int [ns], got {log_time_ns!r}")
+    if log_time_ns < 0:
+        raise RecordingError(f"log_time_ns must be >= 0 [ns], got {log_time_ns}")
 
 
 class _StrictReads:

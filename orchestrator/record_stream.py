@@ -33,13 +33,12 @@ import json
 import logging
 import math
 import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any, Protocol
 
 import numpy as np
 from hilswarm.agents import bus
 from hilswarm.agents.errors import HilswarmError, RecordingError
-from hilswarm.agents.mcap_io import json_number
 from hilswarm.agents.telemetry import telemetry_topic
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.recorder import TICKS_SCHEMA, TICKS_TOPIC, Recorder
@@ -54,6 +53,23 @@ _TICK_HEAD = struct.Struct("<BIqqdddHH")
 _AGENT_HEAD = struct.Struct("<BIHq")
 _EVENT_HEAD = struct.Struct("<BIq")
 _VECTOR_HEAD = struct.Struct("<BIHqH")
+#: Layouts of the bus payloads a Y frame carries, unpacked in place by the recorder: the head
+#: of :func:`~hilswarm.agents.bus.encode_vector` (k, t) and of
+#: :func:`~hilswarm.agents.bus.encode_report` (compute_s, actuate_s, sense_s, skipped, n_u, n_x).
+_VECTOR = struct.Struct("<qd")
+_REPORT = struct.Struct("<dddIHH")
+_FLOATS: dict[int, struct.Struct] = {}
+#: Y frame layouts a FrameRecorder remembers (one per frame length).
+_Y_LAYOUTS = 256
+
+
+def _floats(n: int) -> struct.Struct:
+    """A cached ``struct.Struct`` of ``n`` little-endian float64."""
+    layout = _FLOATS.get(n)
+    if layout is None:
+        layout = _FLOATS[n] = struct.Struct(f"<{n}d")
+    return layout
+
 
 #: Agent index of events that concern the orchestrator itself (``/orchestrator/status``).
 ORCHESTRATOR = "orchestrator"
@@ -171,13 +187,26 @@ class FrameRecorder:
         self.names = experiment.agent_names
         self.dt = experiment.dt
         self._quoted = [json.dumps(name) for name in self.names]
+        # Per agent, its part of /orchestrator/ticks "agents" with "%" holes for the numbers.
+        self._agent_templates = [
+            quoted.replace("%", "%%")
+            + ':{"answer_s":%s,"sense_s":%s,"compute_s":%s,"actuate_s":%s,"skipped":%d}'
+            for quoted in self._quoted
+        ]
         self._y_topics = [f"/{name}/y" for name in self.names]
         self._u_topics = [f"/{name}/u" for name in self.names]
         self._x_topics = [f"/{name}/x_hat" for name in self.names]
-        # Per agent, the (k, timing) of its latest y: the sense/compute/actuate of tick k.
-        self._timings: list[tuple[int, bus.AgentTiming] | None] = [None] * len(self.names)
+        # Per agent, (k, sense_s, compute_s, actuate_s, skipped) of its latest y: tick k's times.
+        self._timings: list[tuple[int, float, float, float, int] | None] = [None] * len(self.names)
         self._ticks_registered = False
         self._plain_y: set[int] = set()
+        # Per frame length, the layout of the last Y frame of that length: (struct, n_y, n_u,
+        # n_x), n_u = n_x = -1 for a frame without a report.
+        self._y_layouts: dict[int, tuple[struct.Struct, int, int, int]] = {}
+        # Per agent, the number of field names of its y topic (None: no names), once known.
+        self._y_width: dict[int, int | None] = {}
+        # Vector messages (topic, k, t, values, log time) not yet handed to the recorder.
+        self._rows: list[tuple[str, int, float, Sequence[float], int]] = []
         # Telemetry topics seen: topic -> field names it was registered with (None: plain).
         self._telemetry_topics: dict[str, tuple[str, ...] | None] = {}
         self.telemetry_rows = 0
@@ -187,59 +216,146 @@ class FrameRecorder:
     def write(self, data: bytes) -> None:
         """:class:`RecordSink` interface: decode and record a batch of whole frames."""
         reader = FrameReader()
-        for kind, frame in reader.feed(data):
-            self.apply(kind, frame)
+        self.apply_all(reader.feed(data))
         if reader.pending:
             raise RecordingError(f"record stream: {reader.pending} bytes of a cut frame")
 
     def apply(self, kind: int, frame: bytes) -> None:
         """Record one frame; a bad frame is logged and counted, never fatal."""
-        self.frames += 1
-        try:
-            if kind == Y:
-                self._y(frame)
-            elif kind == TICK:
-                self._tick(frame)
-            elif kind == STATUS:
-                self._status(frame)
-            elif kind == EVENT:
-                self._event(frame)
-            elif kind == VECTOR:
-                self._vector(frame)
-            elif kind == TELEMETRY:
-                self._telemetry(frame)
-            else:
-                raise RecordingError(f"unknown frame kind {kind}")
-        except (HilswarmError, ValueError, struct.error, IndexError) as exc:
-            self.errors += 1
-            logger.error("record stream: frame of kind %d not recorded: %s", kind, exc)
+        self.apply_all(((kind, frame),))
 
-    def _y(self, frame: bytes) -> None:
-        _, _, i, log_ns, n_payload = _Y_HEAD.unpack_from(frame)
-        start = _Y_HEAD.size
-        payload = frame[start : start + n_payload]
-        k, t, values = bus.unpack_vector(payload)
-        timing, u, x_hat = bus.unpack_report(frame[start + n_payload :])
-        self._timings[i] = (k, timing)
-        recorder = self.recorder
-        topic = self._y_topics[i]
-        if i in self._plain_y:
-            self._plain_vector(topic, k, t, values, log_ns)
-        else:
+    def apply_all(self, frames: Iterable[tuple[int, bytes]]) -> None:
+        """Record frames in order; a bad frame is logged and counted, never fatal.
+
+        The vector messages of consecutive ``Y`` and telemetry frames are handed to the
+        recorder together (one call, one lock), before any other message, so the file holds
+        the messages in frame order.
+        """
+        rows = self._rows
+        for kind, frame in frames:
+            self.frames += 1
             try:
-                recorder.write_floats(topic, k=k, t=t, values=values, log_time_ns=log_ns)
-            except RecordingError:  # y does not match the vehicle's output names
-                logger.warning("%s: %d values, not its named outputs: recorded plain", topic,
-                               len(values))  # fmt: skip
-                self._plain_y.add(i)
-                self._plain_vector(topic, k, t, values, log_ns)
+                if kind == Y:
+                    self._y(frame, rows)
+                    continue
+                if kind == TELEMETRY:
+                    self._telemetry(frame, rows)
+                    continue
+                if rows:
+                    self._flush_rows()
+                if kind == TICK:
+                    self._tick(frame)
+                elif kind == STATUS:
+                    self._status(frame)
+                elif kind == EVENT:
+                    self._event(frame)
+                elif kind == VECTOR:
+                    self._vector(frame)
+                else:
+                    raise RecordingError(f"unknown frame kind {kind}")
+            except (HilswarmError, ValueError, struct.error, IndexError) as exc:
+                self.errors += 1
+                logger.error("record stream: frame of kind %d not recorded: %s", kind, exc)
+        if rows:
+            self._flush_rows()
+
+    def _flush_rows(self) -> None:
+        """Write the vector messages gathered from frames so far (a refused one is skipped)."""
+        rows, recorder = self._rows, self.recorder
+        start = 0
+        while start < len(rows):  # each pass writes or skips at least one message
+            before = recorder.message_count
+            try:
+                recorder.write_floats_many(rows[start:] if start else rows)
+                break
+            except (HilswarmError, ValueError, struct.error) as exc:
+                start += recorder.message_count - before
+                self.errors += 1
+                logger.error("record stream: %s not recorded: %s", rows[start][0], exc)
+                start += 1
+        rows.clear()
+
+    def _y_fields_match(self, i: int, n_values: int) -> bool:
+        """True if agent ``i``'s ``y`` of ``n_values`` entries is written with field names."""
+        width = self._y_width.get(i, -1)
+        if width == -1:
+            fields = self.recorder.topic_fields(self._y_topics[i])
+            width = self._y_width[i] = None if fields is None else len(fields)
+        if width is None or width == n_values:
+            return True
+        # y does not match the vehicle's output names: plain from now on
+        logger.warning("%s: %d values, not its named outputs: recorded plain",
+                       self._y_topics[i], n_values)  # fmt: skip
+        self._plain_y.add(i)
+        return False
+
+    def _y(self, frame: bytes, rows: list[tuple[str, int, float, Sequence[float], int]]) -> None:
+        i, log_ns, k, t, values, sense, compute, actuate, skipped, u, x_hat = self._unpack_y(frame)
+        self._timings[i] = (k, sense, compute, actuate, skipped)
+        if i not in self._plain_y and self._y_fields_match(i, len(values)):
+            rows.append((self._y_topics[i], k, t, values, log_ns))
+        else:
+            if rows:
+                self._flush_rows()
+            self._plain_vector(self._y_topics[i], k, t, values, log_ns)
         if u:
             t_u = t - self.dt
-            recorder.write_floats(self._u_topics[i], k=k, t=t_u, values=u, log_time_ns=log_ns)
+            rows.append((self._u_topics[i], k, t_u, u, log_ns))
             if x_hat:
-                recorder.write_floats(
-                    self._x_topics[i], k=k, t=t_u, values=x_hat, log_time_ns=log_ns
-                )
+                rows.append((self._x_topics[i], k, t_u, x_hat, log_ns))
+
+    def _unpack_y(self, frame: bytes) -> tuple[Any, ...]:
+        """The numbers of a Y frame: agent, log time [ns], k, t [s], y, sense_s, compute_s,
+        actuate_s, skipped, u, x_hat (the vectors as tuples of floats).
+
+        Frames of one length almost always have one layout (an agent's y, u and x_hat keep
+        their sizes): all numbers are unpacked at once with the layout last seen for the
+        length, after checking that the sizes the frame states are the ones it assumes.
+        """
+        cached = self._y_layouts.get(len(frame))
+        if cached is not None:
+            layout, n_y, n_u, n_x = cached
+            numbers = layout.unpack_from(frame)
+            end_y = 7 + n_y
+            if numbers[4] == _VECTOR.size + 8 * n_y:
+                if n_u < 0:  # no report
+                    return (*numbers[2:4], *numbers[5:7], numbers[7:], 0.0, 0.0, 0.0, 0, (), ())
+                if numbers[end_y + 4] == n_u and numbers[end_y + 5] == n_x:
+                    compute, actuate, sense, skipped = numbers[end_y : end_y + 4]
+                    u_end = end_y + 6 + n_u
+                    return (
+                        numbers[2], numbers[3], numbers[5], numbers[6], numbers[7:end_y], sense,
+                        compute, actuate, skipped, numbers[end_y + 6 : u_end], numbers[u_end:],
+                    )  # fmt: skip
+        _, _, i, log_ns, n_payload = _Y_HEAD.unpack_from(frame)
+        start = _Y_HEAD.size
+        n_y, odd = divmod(n_payload - _VECTOR.size, 8)
+        if n_y < 0 or odd or start + n_payload > len(frame):
+            raise RecordingError(f"y payload of {n_payload} bytes: expected 16 + 8 per value")
+        k, t = _VECTOR.unpack_from(frame, start)
+        values = _floats(n_y).unpack_from(frame, start + _VECTOR.size)
+        # The tick report (bus.encode_report), unpacked here: no objects per frame.
+        report = start + n_payload
+        size = len(frame) - report
+        if size:
+            if size < _REPORT.size:
+                raise RecordingError(f"tick report of {size} bytes, expected >= {_REPORT.size}")
+            compute, actuate, sense, skipped, n_u, n_x = _REPORT.unpack_from(frame, report)
+            if size != _REPORT.size + 8 * (n_u + n_x):
+                raise RecordingError(f"tick report of {size} bytes does not hold {n_u} + {n_x}")
+            report += _REPORT.size
+            u = _floats(n_u).unpack_from(frame, report)
+            x_hat = _floats(n_x).unpack_from(frame, report + 8 * n_u)
+            layout = f"<BIHqIqd{n_y}ddddIHH{n_u}d{n_x}d"
+        else:
+            compute = actuate = sense = 0.0
+            skipped = 0
+            u = x_hat = ()
+            n_u = n_x = -1
+            layout = f"<BIHqIqd{n_y}d"
+        if len(self._y_layouts) < _Y_LAYOUTS:
+            self._y_layouts[len(frame)] = (struct.Struct(layout), n_y, n_u, n_x)
+        return i, log_ns, k, t, values, sense, compute, actuate, skipped, u, x_hat
 
     def _plain_vector(
         self, topic: str, k: int, t: float, values: Sequence[float], log_ns: int
@@ -255,33 +371,42 @@ class FrameRecorder:
         indices = struct.unpack_from(f"<{n_late + n_missing}H", frame, offset)
         offset += 2 * (n_late + n_missing)
         n = len(self.names)
-        answers = struct.unpack_from(f"<{n}d", frame, offset)
+        answers = _floats(n).unpack_from(frame, offset)
         quoted = self._quoted
         late = ",".join(quoted[j] for j in indices[:n_late])
         missing = ",".join(quoted[j] for j in indices[n_late:])
-        agents = []
+        # Every number of the message, formatted at once; non-finite ones become null.
+        numbers: list[float] = [k * self.dt, scheduled, send_delay, completion]
+        templates = self._agent_templates
+        answered: list[str] = []
+        skips: list[int] = []
+        timings = self._timings
         for i, answer in enumerate(answers):
-            if math.isnan(answer):
+            if math.isnan(answer):  # no answer
                 continue
-            entry = self._timings[i]
+            entry = timings[i]
             if entry is not None and entry[0] == k:
-                timing = entry[1]
-                sense, compute, actuate, skipped = (
-                    timing.sense_s, timing.compute_s, timing.actuate_s, timing.skipped
-                )  # fmt: skip
+                numbers += (answer, entry[1], entry[2], entry[3])
+                skips.append(int(entry[4]))
             else:
-                sense = compute = actuate = math.nan
-                skipped = 0
-            agents.append(
-                f'{quoted[i]}:{{"answer_s":{json_number(answer)},"sense_s":{json_number(sense)},'
-                f'"compute_s":{json_number(compute)},"actuate_s":{json_number(actuate)},'
-                f'"skipped":{int(skipped)}}}'
-            )
+                numbers += (answer, math.nan, math.nan, math.nan)
+                skips.append(0)
+            answered.append(templates[i])
+        texts = list(map(float.__repr__, numbers))
+        if "n" in "".join(texts):
+            texts = ["null" if "n" in text else text for text in texts]
+        agents = ",".join(
+            [
+                template % (texts[4 + 4 * j], texts[5 + 4 * j], texts[6 + 4 * j],
+                            texts[7 + 4 * j], skips[j])
+                for j, template in enumerate(answered)
+            ]
+        )  # fmt: skip
         text = (
-            f'{{"k":{k},"t":{json_number(k * self.dt)},"values":[],'
-            f'"scheduled_s":{json_number(scheduled)},"send_delay_s":{json_number(send_delay)},'
-            f'"completion_s":{json_number(completion)},"late":[{late}],"missing":[{missing}],'
-            f'"agents":{{{",".join(agents)}}}}}'
+            f'{{"k":{k},"t":{texts[0]},"values":[],'
+            f'"scheduled_s":{texts[1]},"send_delay_s":{texts[2]},'
+            f'"completion_s":{texts[3]},"late":[{late}],"missing":[{missing}],'
+            f'"agents":{{{agents}}}}}'
         )
         schema = None if self._ticks_registered else TICKS_SCHEMA
         self.recorder.write_encoded(TICKS_TOPIC, text.encode(), log_time_ns=log_ns, schema=schema)
@@ -323,20 +448,27 @@ class FrameRecorder:
             f"/{self.names[i]}/{leaf}", k=k, t=t, values=values, log_time_ns=log_ns
         )
 
-    def _telemetry(self, frame: bytes) -> None:
+    def _telemetry(
+        self, frame: bytes, rows: list[tuple[str, int, float, Sequence[float], int]]
+    ) -> None:
         _, _, i, log_ns = _AGENT_HEAD.unpack_from(frame)
         agent = self.names[i]
-        for rows in bus.decode_telemetry_batch(frame[_AGENT_HEAD.size :]):
-            topic = telemetry_topic(agent, rows.channel)
-            fields = self._telemetry_fields(topic, rows.fields)
-            k_list, t_list, value_rows = rows.k.tolist(), rows.t.tolist(), rows.values.tolist()
+        for channel in bus.decode_telemetry_batch(frame[_AGENT_HEAD.size :]):
+            topic = telemetry_topic(agent, channel.channel)
+            fields = self._telemetry_fields(topic, channel.fields)
+            k_list = channel.k.tolist()
+            t_list = channel.t.tolist()
+            value_rows = channel.values.tolist()
             if fields is None:
+                if rows:
+                    self._flush_rows()
                 for k, t, values in zip(k_list, t_list, value_rows, strict=True):
                     self._plain_vector(topic, k, t, values, log_ns)
             else:
-                write = self.recorder.write_floats
-                for k, t, values in zip(k_list, t_list, value_rows, strict=True):
-                    write(topic, k=k, t=t, values=values, log_time_ns=log_ns)
+                rows += [
+                    (topic, k, t, values, log_ns)
+                    for k, t, values in zip(k_list, t_list, value_rows, strict=True)
+                ]
             self.telemetry_rows += len(k_list)
 
     def _telemetry_fields(self, topic: str, fields: tuple[str, ...]) -> tuple[str, ...] | None:

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 from hilswarm.agents.errors import HilswarmError, RecordingError
-from hilswarm.agents.mcap_io import McapJsonWriter
+from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION, McapJsonWriter
 from hilswarm.orchestrator import calibration_report
 from hilswarm.orchestrator.experiment import AgentSpec, Experiment
 from numpy.typing import ArrayLike
@@ -107,6 +107,8 @@ class Recorder:
             replaced).
         experiment: the experiment being run (recorded in ``/experiment``).
         chunk_size: MCAP chunk size [bytes].
+        compression: chunk compression, ``"zstd"``, ``"lz4"`` or ``"none"`` (default:
+            :data:`~hilswarm.agents.mcap_io.DEFAULT_COMPRESSION`).
         log_time_ns: log time [ns, wall clock, Unix epoch] of the ``/experiment`` message.
             When ``None`` the message is written just before the first other message, with
             that message's log time (the recorder reads no clock itself).
@@ -121,12 +123,13 @@ class Recorder:
         experiment: Experiment,
         *,
         chunk_size: int = DEFAULT_CHUNK_SIZE,
+        compression: str = DEFAULT_COMPRESSION,
         log_time_ns: int | None = None,
     ) -> None:
         self.path = Path(path)
         self.experiment = experiment
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._writer = McapJsonWriter(self.path, chunk_size=chunk_size)
+        self._writer = McapJsonWriter(self.path, chunk_size=chunk_size, compression=compression)
         self._lock = threading.Lock()
         self._experiment_written = False
         self._closed = False
@@ -190,6 +193,11 @@ class Recorder:
             self._check_open(topic)
             self._writer.add_topic(topic, fields=fields)
 
+    def topic_fields(self, topic: str) -> tuple[str, ...] | None:
+        """The entry names ``topic`` was registered with (``None``: none, or not registered)."""
+        with self._lock:
+            return self._writer.topic_fields(topic)
+
     def write_floats(
         self, topic: str, *, k: int, t: float, values: Sequence[float], log_time_ns: int
     ) -> None:
@@ -207,6 +215,34 @@ class Recorder:
                 writer.add_topic(topic)
             writer.write_floats(topic, k=k, t=t, values=values, log_time_ns=int(log_time_ns))
             self.message_count += 1
+
+    def write_floats_many(
+        self, rows: Sequence[tuple[str, int, float, Sequence[float], int]]
+    ) -> None:
+        """:meth:`write_floats` for several messages, in order, under one lock (hot path).
+
+        Args:
+            rows: per message ``(topic, k, t, values, log_time_ns)``: the topic, tick index,
+                experiment time [s], the vector as Python floats and the log time [ns, wall
+                clock, Unix epoch]. Topics not named with :meth:`add_topic` are registered
+                without entry names, like :meth:`write_floats` does.
+
+        Raises:
+            RecordingError: a topic named with other fields than the values given; the rows
+                before it are recorded, none after it.
+        """
+        if not rows:
+            return
+        with self._lock:
+            self._check_open(rows[0][0])
+            if not self._experiment_written:
+                self._write_experiment(rows[0][4])
+            writer = self._writer
+            before = writer.messages_written
+            try:
+                writer.write_floats_many(rows, register=True)
+            finally:
+                self.message_count += writer.messages_written - before
 
     def write_encoded(
         self,

@@ -1,0 +1,373 @@
+"""Record-stream benchmark: what the recorder process spends per MCAP message.
+
+The instance manager hands the recorder process binary frames (``record_stream``); the recorder
+decodes them, builds the JSON of every message and writes it into a chunked, compressed MCAP
+file. This benchmark builds the frames a Frisbee swarm's manager sends (per agent and tick a
+``y`` frame with ``y = [x, y, psi]`` and a tick report with ``u`` of 2 and ``x_hat`` of 2; one
+tick frame per tick; every 25 ticks per agent a telemetry batch of ``battery`` (1 field) and
+``wheel_duty`` (2 fields)) and feeds them through
+:class:`~hilswarm.orchestrator.record_stream.FrameRecorder` into a real MCAP file in a temporary
+folder, in batches of 20 ms of ticks at 100 Hz, as the manager does.
+
+Figures: CPU [µs] per recorded message (frame decode + JSON + MCAP records + compression +
+write to the OS, file closed), messages/s, and the ratio against a baseline measured in the
+same process: the plain ``mcap`` ``Writer`` (zstd, same chunk size) fed ``json.dumps`` of the
+same message dicts (built beforehand, so the baseline does no frame decoding at all).
+
+    python benchmarks/record_stream.py            # 8 and 32 agents, every compression
+    python benchmarks/record_stream.py --short    # < 30 s
+    python benchmarks/record_stream.py --profile  # cProfile of the recorder path (8 agents)
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import math
+import os
+import pstats
+import resource
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from hilswarm.agents import bus
+from hilswarm.agents.mcap_io import iter_messages
+from hilswarm.orchestrator.experiment import Experiment, load_experiment
+from hilswarm.orchestrator.record_stream import FrameRecorder, telemetry_frame, tick_frame, y_frame
+from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
+from hilswarm.orchestrator.recorder_process import RecorderProcess
+from mcap.reader import make_reader
+from mcap.writer import CompressionType, Writer
+
+T0 = 1_800_000_000_000_000_000  # a log time [ns, Unix epoch]
+RATE_HZ = 100.0
+BATCH_TICKS = 2  # ticks per write: the manager flushes every 20 ms
+TELEMETRY_TICKS = 25  # ticks per telemetry batch (0.25 s at 100 Hz)
+#: The real recorder process is fed the frames this many times over (its fixed cost is ~0.1 s).
+PROCESS_REPEAT = 5
+#: Compressions measured; the first is the writer's default.
+COMPRESSIONS = ("zstd", "lz4", "none")
+
+
+def frisbee_experiment(folder: Path, n: int) -> Experiment:
+    """``n`` Frisbee bots on simulated boards, on a two-way ring, at :data:`RATE_HZ`."""
+    names = [f"f{i}" for i in range(n)]
+    rows = [[1 if j != i and (j - i) % n in (1, n - 1) else 0 for j in range(n)] for i in range(n)]
+    text = (
+        f'[experiment]\nname = "bench"\nrate_hz = {RATE_HZ}\nduration_s = 10.0\n'
+        f'mode = "realtime"\n\n[graph]\nagents = {names}\nadjacency = {rows}\n\n'
+        '[defaults]\nvehicle = "frisbee"\nlink = "sim://"\ncontroller = "waypoint"\n\n'
+    )
+    for i, name in enumerate(names):
+        text += (
+            f"[agents.{name}]\ninitial_state = [{float(i)}, 0.0, 0.0]\n"
+            f"params = {{ waypoints = [[{float(i)}, 1.0]] }}\n\n"
+        )
+    path = folder / f"bench-{n}.toml"
+    path.write_text(text, encoding="utf-8")
+    return load_experiment(path)
+
+
+def build_frames(n: int, ticks: int) -> tuple[list[bytes], list[tuple[str, int, dict[str, Any]]]]:
+    """The manager's write batches for ``ticks`` ticks of ``n`` agents, and the same messages
+    as ``(topic, log time [ns], dict)`` for the baseline (``/orchestrator/ticks`` included).
+    """
+    rng = np.random.default_rng(1)
+    dt = 1.0 / RATE_HZ
+    battery_head = bus.telemetry_channel_head("battery", ("battery",))
+    duty_head = bus.telemetry_channel_head("wheel_duty", ("left", "right"))
+    names = [f"f{i}" for i in range(n)]
+    batches: list[bytes] = []
+    messages: list[tuple[str, int, dict[str, Any]]] = []
+    pending: list[bytes] = []
+    for k in range(ticks):
+        t = k * dt
+        log = T0 + int(k * dt * 1e9) + 3_000_000
+        answers = 0.001 + 0.002 * rng.random(n)
+        agents: dict[str, Any] = {}
+        for i in range(n):
+            y = (rng.normal(size=3) * [1.0, 1.0, 3.0]).tolist()
+            u = rng.normal(size=2).tolist() if k else None
+            x_hat = rng.normal(size=2).tolist() if k else None
+            timing = bus.AgentTiming(
+                compute_s=float(rng.random() * 1e-4),
+                actuate_s=float(rng.random() * 1e-4),
+                sense_s=float(rng.random() * 1e-4),
+            )
+            payload = bus.encode_vector(k, t, y)
+            report = bus.encode_report(timing, u, x_hat)
+            pending.append(y_frame(i, log, payload, report))
+            messages.append(
+                (f"/{names[i]}/y", log, {"k": k, "t": t, "values": y, "x": y[0], "y": y[1],
+                                        "psi": y[2]})
+            )  # fmt: skip
+            if u is not None and x_hat is not None:
+                messages.append((f"/{names[i]}/u", log, {"k": k, "t": t - dt, "values": u}))
+                messages.append((f"/{names[i]}/x_hat", log, {"k": k, "t": t - dt, "values": x_hat}))
+            agents[names[i]] = {
+                "answer_s": float(answers[i]),
+                "sense_s": timing.sense_s,
+                "compute_s": timing.compute_s,
+                "actuate_s": timing.actuate_s,
+                "skipped": 0,
+            }
+            if (k + 1) % TELEMETRY_TICKS == 0:
+                ks = np.arange(k + 1 - TELEMETRY_TICKS, k + 1, dtype=np.int64)
+                ts = ks * dt
+                battery = 12.4 - 1e-4 * ks[:, None].astype(float)
+                duty = rng.normal(size=(TELEMETRY_TICKS, 2))
+                batch = bus.encode_telemetry_batch(
+                    [(battery_head, ks, ts, battery), (duty_head, ks, ts, duty)]
+                )
+                pending.append(telemetry_frame(i, log, batch))
+                for row in range(TELEMETRY_TICKS):
+                    kr, tr = int(ks[row]), float(ts[row])
+                    b = float(battery[row, 0])
+                    messages.append(
+                        (f"/{names[i]}/telemetry/battery", log,
+                         {"k": kr, "t": tr, "values": [b], "battery": b})
+                    )  # fmt: skip
+                    left, right = duty[row].tolist()
+                    messages.append(
+                        (f"/{names[i]}/telemetry/wheel_duty", log,
+                         {"k": kr, "t": tr, "values": [left, right], "left": left, "right": right})
+                    )  # fmt: skip
+        pending.append(
+            tick_frame(
+                k,
+                log,
+                scheduled_s=t,
+                send_delay_s=2e-5,
+                completion_s=float(answers.max()),
+                late=[],
+                missing=[],
+                answer_s=answers,
+            )
+        )
+        messages.append(
+            (
+                "/orchestrator/ticks",
+                log,
+                {"k": k, "t": t, "values": [], "scheduled_s": t, "send_delay_s": 2e-5,
+                 "completion_s": float(answers.max()), "late": [], "missing": [],
+                 "agents": agents},
+            )
+        )  # fmt: skip
+        if (k + 1) % BATCH_TICKS == 0:
+            batches.append(b"".join(pending))
+            pending.clear()
+    if pending:
+        batches.append(b"".join(pending))
+    return batches, messages
+
+
+def _cpu_s() -> float:
+    return time.process_time()
+
+
+def run_recorder(
+    experiment: Experiment, batches: list[bytes], path: Path, compression: str | None
+) -> tuple[float, int]:
+    """Feed ``batches`` through a FrameRecorder into ``path``: (CPU [s], messages written).
+
+    The set-up (``/experiment``, calibrations, output names) is not timed; closing the file
+    (last chunk, summary, indexes) is.
+    """
+    kwargs: dict[str, Any] = {} if compression is None else {"compression": compression}
+    try:
+        recorder = Recorder(path, experiment, log_time_ns=T0, **kwargs)
+    except TypeError:  # a Recorder without a compression choice: only its default
+        if compression not in (None, COMPRESSIONS[0]):
+            raise
+        recorder = Recorder(path, experiment, log_time_ns=T0)
+    record_vehicles(recorder, experiment, log_time_ns=T0)
+    before = recorder.message_count
+    frames = FrameRecorder(recorder, experiment)
+    start = _cpu_s()
+    for batch in batches:
+        frames.write(batch)
+    recorder.close()
+    elapsed = _cpu_s() - start
+    return elapsed, recorder.message_count - before
+
+
+def _child_cpu_s(pid: int) -> float:
+    """User + system CPU of the living process ``pid`` [s] (clock-tick resolution)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _reaped_children_cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def run_process(experiment: Experiment, batches: list[bytes], path: Path) -> tuple[float, float]:
+    """Feed ``batches`` to a real recorder process, as the manager does.
+
+    Returns:
+        The recorder process's CPU for the stream (its start-up, until ``ready``, left out)
+        [s], and the time the feeding side spent in ``RecorderProcess.write`` [s].
+    """
+    children = _reaped_children_cpu_s()
+    process = RecorderProcess(path, experiment, log_time_ns=T0)
+    try:
+        process.wait_ready()
+        start_up = _child_cpu_s(process.process.pid)
+        blocked = 0.0
+        for batch in batches:
+            before = time.perf_counter()
+            process.write(batch)
+            blocked += time.perf_counter() - before
+    finally:
+        code = process.close()
+    if code != 0:
+        raise SystemExit(f"the recorder process exited with status {code}")
+    return _reaped_children_cpu_s() - children - start_up, blocked
+
+
+def run_baseline(messages: list[tuple[str, int, dict[str, Any]]], path: Path) -> float:
+    """The plain ``mcap`` Writer with ``json.dumps`` of the same dicts: CPU [s]."""
+    start = _cpu_s()
+    with open(path, "wb") as raw:
+        writer = Writer(raw, chunk_size=DEFAULT_CHUNK_SIZE, compression=CompressionType.ZSTD)
+        writer.start(library="baseline")
+        channels: dict[str, int] = {}
+        for topic, log, message in messages:
+            channel = channels.get(topic)
+            if channel is None:
+                schema = writer.register_schema(topic, "jsonschema", b'{"type":"object"}')
+                channel = channels[topic] = writer.register_channel(topic, "json", schema)
+            data = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
+            writer.add_message(channel, log, data, log)
+        writer.finish()
+    return _cpu_s() - start
+
+
+def check_file(path: Path, expected: int) -> None:
+    """The file is complete (summary, statistics) and holds the messages of the run."""
+    with path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    if summary is None or summary.statistics is None:
+        raise SystemExit(f"{path}: no summary")
+    count = summary.statistics.message_count
+    if count < expected:
+        raise SystemExit(f"{path}: {count} messages, expected at least {expected}")
+
+
+def best_of(repeats: int, measure: Callable[[], float]) -> float:
+    """The smallest of ``repeats`` measurements (the least disturbed on a shared machine)."""
+    return min(measure() for _ in range(repeats))
+
+
+def main() -> None:
+    """Measure and print the figures."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--short", action="store_true", help="a quick run (< 30 s)")
+    parser.add_argument("--agents", type=int, nargs="*", default=[8, 32])
+    parser.add_argument("--ticks", type=int, default=0, help="ticks per run (default by mode)")
+    parser.add_argument("--repeats", type=int, default=0, help="runs per figure (best is kept)")
+    parser.add_argument("--compression", nargs="*", default=list(COMPRESSIONS))
+    parser.add_argument("--profile", action="store_true", help="cProfile the recorder (8 agents)")
+    parser.add_argument(
+        "--no-process", action="store_true", help="skip the real recorder process's figure"
+    )
+    args = parser.parse_args()
+    ticks = args.ticks or (200 if args.short else 1000)
+    repeats = args.repeats or (2 if args.short else 3)
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        if args.profile:
+            experiment = frisbee_experiment(folder, 8)
+            batches, _ = build_frames(8, ticks)
+            profiler = cProfile.Profile()
+            profiler.enable()
+            run_recorder(experiment, batches, folder / "profile.mcap", None)
+            profiler.disable()
+            out = io.StringIO()
+            pstats.Stats(profiler, stream=out).sort_stats("tottime").print_stats(25)
+            print(out.getvalue())
+            return
+        print(
+            f"{ticks} ticks at {RATE_HZ:g} Hz, writes of {BATCH_TICKS} ticks, telemetry every "
+            f"{TELEMETRY_TICKS} ticks, chunks of {DEFAULT_CHUNK_SIZE // 1024} KiB; "
+            f"best of {repeats}"
+        )
+        print(
+            f"{'N':>3} {'compression':11} {'messages':>8} {'µs/msg':>7} {'msg/s':>9} "
+            f"{'ms/tick':>8} {'MB':>6} {'base µs':>8} {'ratio':>6}"
+        )
+        last = None
+        for n in args.agents:
+            last = measure_fleet(
+                folder, n, ticks, repeats, args.compression, process=not args.no_process
+            )
+        if last is not None:  # the last file reads back with the messages of the contract
+            first = next(iter_messages(last, topics=["/orchestrator/ticks"]))[2]
+            if not math.isclose(first["t"], 0.0) or "agents" not in first:
+                raise SystemExit(f"unexpected first tick message {first}")
+
+
+def measure_fleet(
+    folder: Path, n: int, ticks: int, repeats: int, compressions: list[str], *, process: bool
+) -> Path | None:
+    """Print one line per compression for ``n`` agents; returns the last file written."""
+    experiment = frisbee_experiment(folder, n)
+    batches, messages = build_frames(n, ticks)
+    base_path = folder / f"baseline-{n}.mcap"
+    base_s = best_of(repeats, lambda: run_baseline(messages, base_path))
+    check_file(base_path, len(messages))
+    base_us = 1e6 * base_s / len(messages)
+    path = None
+    for compression in compressions:
+        path = folder / f"run-{n}-{compression}.mcap"
+        counts: list[int] = []
+
+        def measure(path: Path = path, compression: str = compression, counts=counts) -> float:
+            seconds, count = run_recorder(experiment, batches, path, compression)
+            counts.append(count)
+            return seconds
+
+        seconds = best_of(repeats, measure)
+        count = counts[-1]
+        check_file(path, count)
+        if count != len(messages):
+            raise SystemExit(f"recorded {count} messages, expected {len(messages)}")
+        us = 1e6 * seconds / count
+        size_mb = path.stat().st_size / 1e6
+        print(
+            f"{n:>3} {compression:11} {count:>8} {us:>7.2f} {count / seconds:>9.0f} "
+            f"{1e3 * seconds / ticks:>8.3f} {size_mb:>6.2f} {base_us:>8.2f} "
+            f"{us / base_us:>6.2f}"
+        )
+    if process:
+        path = folder / f"process-{n}.mcap"
+        # The stream sent PROCESS_REPEAT times over: long enough to dwarf the fixed cost.
+        stream = batches * PROCESS_REPEAT
+        count = len(messages) * PROCESS_REPEAT
+        results = [run_process(experiment, stream, path) for _ in range(repeats)]
+        # what a stream without frames costs (reading the pipe's end, closing, exiting)
+        fixed = min(run_process(experiment, [], folder / "empty.mcap")[0] for _ in range(repeats))
+        seconds = min(cpu for cpu, _ in results) - fixed
+        blocked = min(wait for _, wait in results)
+        check_file(path, count)
+        us = 1e6 * seconds / count
+        print(
+            f"{n:>3} {'process':11} {count:>8} {us:>7.2f} {count / seconds:>9.0f} "
+            f"{1e3 * seconds / ticks / PROCESS_REPEAT:>8.3f} {path.stat().st_size / 1e6:>6.2f} "
+            f"{base_us:>8.2f} "
+            f"{us / base_us:>6.2f}   (fixed {1e3 * fixed:.0f} ms; the feeder spent "
+            f"{1e6 * blocked / ticks / PROCESS_REPEAT:.1f} µs/tick in write)"
+        )
+    return path
+
+
+if __name__ == "__main__":
+    main()
