@@ -13,6 +13,11 @@ Every run records to a temporary MCAP file through the recorder process, like ``
 (``--record inline``: inside the manager process, on its ticking thread; ``--record off``: not
 at all). The last lines compare the figures with the issue's targets: met or missed, with the
 numbers.
+
+Each configuration is also run as a *bare bus* baseline (``benchmarks/bare_bus.py``, skip with
+``--no-baseline``): the same router and one client process per agent answering every tick
+from the bus callback, with no vehicle, controller or recording. It is measured in the same
+process, right before the runtime, so a busy machine shows in both; the runtime cannot beat it.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from bare_bus import BareResult, run_bare
 from hilswarm.agents import bus
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
@@ -165,6 +171,17 @@ def run_once(
     return Result(vehicle, mode, n, rate_hz, summary, cpu / ticks, max(0.0, recorder_cpu) / ticks)
 
 
+def baseline_row(bare: BareResult) -> str:
+    """A table row for a bare-bus baseline run (same columns as :meth:`Result.row`)."""
+    p50, p99 = bare.percentiles_ms()
+    late = "-" if bare.mode == "lockstep" else f"{100 * bare.late_fraction:.2f}"
+    speed = f"{bare.speed:.1f}x" if bare.mode == "lockstep" else "-"
+    return (
+        f"{'bare bus':9} {bare.mode:9} {bare.n:>3} {bare.rate_hz:>5g} {bare.ticks:>6} "
+        f"{p50:>7.2f} {p99:>7.2f} {late:>6} {'-':>8} {'-':>8} {speed:>7}"
+    )
+
+
 def verdicts(results: list[Result]) -> list[str]:
     """One honest line per target of the issue: met / missed / not measured, with numbers."""
     lines = []
@@ -247,6 +264,9 @@ def main(argv: list[str] | None = None) -> int:
         help="recorder process (as hilswarm run), recorder inside the manager, or none",
     )  # fmt: skip
     parser.add_argument("--no-lockstep", action="store_true")
+    parser.add_argument(
+        "--no-baseline", action="store_true", help="skip the bare-bus baseline runs"
+    )
     parser.add_argument("--port", type=int, default=17700)
     args = parser.parse_args(argv)
     lockstep_seconds = 30.0
@@ -264,12 +284,19 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(HEADER, flush=True)
     results: list[Result] = []
+    baselines: dict[tuple[str, int, float], BareResult] = {}
     port = args.port
     for vehicle in fleets:
         configs = [("realtime", n, rate, args.seconds) for n in args.agents for rate in args.rates]
         if not args.no_lockstep:
             configs.append(("lockstep", 8, 100.0, lockstep_seconds))
         for mode, n, rate, seconds in configs:
+            if not args.no_baseline and (mode, n, rate) not in baselines:
+                baselines[(mode, n, rate)] = run_bare(
+                    n=n, rate_hz=rate, seconds=seconds, lockstep=mode == "lockstep", port=port
+                )
+                port += 1
+                print(baseline_row(baselines[(mode, n, rate)]), flush=True)
             result = run_once(
                 n=n, rate_hz=rate, mode=mode, seconds=seconds, port=port, record=args.record,
                 vehicle=vehicle,
