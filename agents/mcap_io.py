@@ -230,6 +230,16 @@ def _compressor(compression: str, zstd_level: int) -> tuple[str, Any]:
     return "", None
 
 
+def check_chunk_options(chunk_size: Any, compression: Any) -> None:
+    """Raise :class:`RecordingError` unless ``chunk_size`` [bytes] and ``compression`` are valid."""
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+        raise RecordingError(f"chunk_size must be a positive int [bytes], got {chunk_size!r}")
+    if compression not in COMPRESSIONS:
+        raise RecordingError(
+            f"compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}"
+        )
+
+
 class ChunkedMcapWriter:
     """A lean MCAP writer: chunked, indexed, with summary, for many small messages.
 
@@ -261,12 +271,7 @@ class ChunkedMcapWriter:
         library: str = "hilswarm",
         zstd_level: int = ZSTD_LEVEL,
     ) -> None:
-        if not isinstance(chunk_size, int) or chunk_size < 1:
-            raise RecordingError(f"chunk_size must be a positive int [bytes], got {chunk_size!r}")
-        if compression not in COMPRESSIONS:
-            raise RecordingError(
-                f"compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}"
-            )
+        check_chunk_options(chunk_size, compression)
         self._file = file
         self._chunk_size = chunk_size
         self.compression, self._compress = _compressor(compression, zstd_level)
@@ -563,12 +568,7 @@ class McapJsonWriter:
         compression: str = DEFAULT_COMPRESSION,
         profile: str = "",
     ) -> None:
-        if not isinstance(chunk_size, int) or chunk_size < 1:
-            raise RecordingError(f"chunk_size must be a positive int [bytes], got {chunk_size!r}")
-        if compression not in COMPRESSIONS:
-            raise RecordingError(
-                f"compression must be one of {sorted(COMPRESSIONS)}, got {compression!r}"
-            )
+        check_chunk_options(chunk_size, compression)
         self.path = Path(path)
         self._file = _DirectFile(self.path)
         try:
