@@ -129,6 +129,22 @@ class AgentLauncher:
             if (code := process.poll()) is not None
         }
 
+    def describe(self, name: str) -> str:
+        """What agent ``name``'s process is doing, for a loss report ("" when not started here).
+
+        A process that is still running while its bus session dropped is hung (stopped,
+        deadlocked) or starved: on an overloaded machine its link lease ran out.
+        """
+        process = self.processes.get(name)
+        if process is None:
+            return ""
+        code = process.poll()
+        if code is None:
+            return "its process is still running (hung, or starved on an overloaded machine)"
+        if code < 0:
+            return f"its process was killed by {_signal_name(-code)}"
+        return f"its process exited with status {code}"
+
     def check(self) -> None:
         """Raise :class:`AgentProcessError` if any agent process has exited."""
         exited = self.exited()
@@ -188,3 +204,10 @@ def _wait(process: subprocess.Popen[bytes], timeout_s: float) -> int | None:
 def _signal_group(process: subprocess.Popen[bytes], signum: int) -> None:
     with contextlib.suppress(ProcessLookupError, PermissionError):
         os.killpg(process.pid, signum)
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"

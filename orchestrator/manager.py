@@ -104,6 +104,8 @@ class InstanceManager:
         record_ticks: write ``/orchestrator/ticks`` (one message per tick).
         flush_period_s: records are handed to ``recorder`` at most this long after they came
             [s] (a killed orchestrator loses at most this much).
+        describe_process: says what an agent's process is doing (exited, killed, still
+            running) when its liveliness token disappears, for the loss report.
     """
 
     def __init__(
@@ -120,6 +122,7 @@ class InstanceManager:
         display: StatusDisplay | None = None,
         record_ticks: bool = True,
         flush_period_s: float = DEFAULT_FLUSH_PERIOD_S,
+        describe_process: Callable[[str], str] | None = None,
     ) -> None:
         if not listen and not connect:
             raise ManagerError("the instance manager needs endpoints to listen on or connect to")
@@ -142,6 +145,7 @@ class InstanceManager:
         self._sink: RecordSink | None = recorder
         self._record_ticks = record_ticks and recorder is not None
         self._flush_period_s = flush_period_s
+        self._describe_process = describe_process
         self._next_flush = 0.0
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
@@ -581,7 +585,9 @@ class InstanceManager:
         if kind == _COMPLETE:
             return  # the loop closes the tick
         if kind == _GONE:
-            self._on_agent_gone(item[1], k, "liveliness token lost (killed or hung)")
+            reason = "liveliness token lost (killed or hung)"
+            process = self._describe_process(item[1]) if self._describe_process else ""
+            self._on_agent_gone(item[1], k, f"{reason}; {process}" if process else reason)
         elif kind == _ALIVE:
             self.alive.add(item[1])
         elif kind == _CONTROL:

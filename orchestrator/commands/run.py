@@ -109,6 +109,9 @@ def run(args: argparse.Namespace) -> int:
     endpoints = list(args.connect) or [bus.loopback_endpoint(args.port)]
     display = StatusDisplay(sys.stdout)
     recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
+    launcher = AgentLauncher(
+        endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
+    )
     manager = InstanceManager(
         experiment,
         recorder=recorder,
@@ -116,9 +119,7 @@ def run(args: argparse.Namespace) -> int:
         connect=args.connect,
         answer_timeout_s=args.answer_timeout,
         display=display,
-    )
-    launcher = AgentLauncher(
-        endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
+        describe_process=launcher.describe,
     )
     interrupted = False
 

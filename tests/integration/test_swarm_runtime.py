@@ -137,6 +137,9 @@ def test_kill_9_with_policy_stop_stops_everyone_safely(
     recording = read_recording(run.out)
     lost = [m for m in statuses(recording, "b") if m["state"] == "lost"]
     assert lost, states(recording, "b")
+    # The loss report says what became of the process (when the manager heard of it).
+    assert "liveliness token lost" in lost[0]["detail"], lost[0]
+    assert "killed by SIGKILL" in lost[0]["detail"] or "still running" in lost[0]["detail"]
     for name in ("a", "c", "d"):
         assert states(recording, name)[-2:] == ["safe", "stopped"], states(recording, name)
     assert "lost agents: b" in run.output()
@@ -194,6 +197,8 @@ def test_hung_agent_is_detected_and_stops_the_run(
     recording = read_recording(run.out)
     assert "lost" in states(recording, "c")
     lost_tick = next(m["k"] for m in statuses(recording, "c") if m["state"] == "lost")
+    detail = next(m["detail"] for m in statuses(recording, "c") if m["state"] == "lost")
+    assert "still running" in detail or "no answer within" in detail, detail
     # Bounded detection: within 3 s (150 ticks at 50 Hz) of the last answer of c.
     last_answer = recording["/c/y"][-1]["k"]
     assert lost_tick - last_answer <= 150
