@@ -5,7 +5,8 @@ Shared by agent processes and the orchestrator (this module imports nothing from
 
 Key space, one experiment per prefix ``hilswarm/<exp>/``:
 
-* ``tick`` — the instance manager's tick messages (:func:`encode_tick`).
+* ``tick`` — the instance manager's tick messages (:func:`encode_tick`), each releasing the
+  ticks up to its ``k`` (:class:`TickMessage`).
 * ``control`` — swarm-wide commands (:class:`ControlCommand`: stop, estop, pause, resume).
 * ``agent/<name>/y`` — the agent's output y_k (:func:`encode_vector`), with its
   :class:`TickReport` (timings, u_k, x_hat_k) as attachment, so the manager and its recorder
@@ -245,17 +246,23 @@ def decode_vector(payload: bytes | bytearray | memoryview) -> tuple[int, float, 
 
 @dataclass(frozen=True)
 class TickMessage:
-    """One tick of the instance manager.
+    """One tick message of the instance manager: it *releases* every tick up to ``k``.
 
-    Tick ``k`` asks every agent to compute u_k from u_{k-1}, y_{k-1} and its neighbours'
-    y_{k-1}, apply it, let the plant advance, sense y_k and publish it (for ``k = 0``: only
-    sense y_0). Every y_{k-1} is in when tick ``k`` is sent, except those of the agents listed
-    in ``missing`` (lost, or late in realtime mode): their neighbours see ``None`` for them.
+    Running tick ``k`` means: compute u_k from u_{k-1}, y_{k-1} and the neighbours' y_{k-1},
+    apply it, let the plant advance, sense y_k and publish it (``k = 0``: only sense y_0).
+
+    * Realtime: one message per tick, on the wall-clock schedule. Every y_{k-1} is in when it
+      is sent, except those of the agents in ``missing`` (late or lost): their neighbours see
+      ``None`` for them. An agent runs the newest tick released.
+    * Lockstep: ticks are released a window ahead (one message covers several ticks); an
+      agent runs each released tick as soon as its own neighbours' y_{k-1} are in.
+      ``missing`` lists the lost agents, whose outputs count as ``None`` from then on. The
+      same ``k`` may be sent again when an agent is lost, to announce it.
 
     Attributes:
-        k: tick index (>= 0).
-        t: experiment time of the tick [s] (``k * dt``).
-        missing: indices (experiment order) of agents whose y_{k-1} is not in.
+        k: the newest tick released (>= 0).
+        t: experiment time of tick ``k`` [s] (``k * dt``).
+        missing: indices (experiment order) of agents whose outputs are not coming.
     """
 
     k: int
