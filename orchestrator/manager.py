@@ -66,6 +66,10 @@ DEFAULT_START_TIMEOUT_S = 60.0
 DEFAULT_ANSWER_TIMEOUT_S = 5.0
 #: Default bound on waiting for agents to stop after the stop command [s].
 DEFAULT_STOP_TIMEOUT_S = 5.0
+#: Realtime: ticks per block in which late ticks are counted for the overload warning.
+OVERLOAD_BLOCK_TICKS = 100
+#: Realtime: the overload warning is given when more than this fraction of a block was late.
+OVERLOAD_LATE_FRACTION = 0.1
 #: Default period of handing records to the recorder [s].
 DEFAULT_FLUSH_PERIOD_S = 0.02
 
@@ -146,6 +150,8 @@ class InstanceManager:
         self._record_ticks = record_ticks and recorder is not None
         self._flush_period_s = flush_period_s
         self._describe_process = describe_process
+        self._late_in_block = 0
+        self._overload_reported = False
         self._next_flush = 0.0
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
@@ -492,8 +498,26 @@ class InstanceManager:
             self.summary.late_ticks += 1
         else:
             self.summary.ticks += 1
+        self._watch_overload(account.k, bool(late))
         if k >= n_ticks:
             self._stop_reason = "completed"
+
+    def _watch_overload(self, k: int, late: bool) -> None:
+        """Say once when many recent ticks were late: the machine may not keep up."""
+        self._late_in_block += late
+        if (k + 1) % OVERLOAD_BLOCK_TICKS or self._overload_reported:
+            return
+        late_count, self._late_in_block = self._late_in_block, 0
+        if late_count > OVERLOAD_LATE_FRACTION * OVERLOAD_BLOCK_TICKS:
+            self._overload_reported = True
+            message = (
+                f"{late_count} of ticks {k + 1 - OVERLOAD_BLOCK_TICKS}..{k} were late: the agents "
+                f"do not keep up with {self.experiment.rate_hz:g} Hz here (too many agents for "
+                "the CPU cores, or slow links); see docs/running.md, Performance"
+            )
+            logger.warning("%s", message)
+            if self._display is not None:
+                self._display.log(message)
 
     def _lockstep_step(self) -> None:
         """Close every completed tick, release more, and find agents that stopped answering."""

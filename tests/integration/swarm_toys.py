@@ -8,6 +8,7 @@ neighbour had no data. Agent processes import this module through ``PYTHONPATH``
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -38,10 +39,13 @@ class ToyIntegrator(Vehicle):
 
 
 class ToyConsensus(Controller):
-    """``u = gain * sum_j (y_j - y)``; state: [ticks with a neighbour missing]."""
+    """``u = gain * sum_j (y_j - y)``; state: [ticks with a neighbour missing].
+
+    ``work_s`` [s] makes each step that long (a controller too slow for the rate).
+    """
 
     n_states: ClassVar[int] = 1
-    default_params: ClassVar[Mapping[str, Any]] = {"gain": 1.0}
+    default_params: ClassVar[Mapping[str, Any]] = {"gain": 1.0, "work_s": 0.0}
 
     def validate_params(self, params: Mapping[str, Any]) -> dict[str, Any]:
         merged = {**self.default_params, **params}
@@ -57,6 +61,8 @@ class ToyConsensus(Controller):
     def step(
         self, tick: TickInput, x_hat: np.ndarray, params: Mapping[str, Any]
     ) -> tuple[np.ndarray, np.ndarray]:
+        if params["work_s"] > 0:
+            time.sleep(params["work_s"])  # stands for slow control code, not for waiting
         total = 0.0
         missing = 0
         for value in tick.neighbours.values():

@@ -377,3 +377,21 @@ def _pid_of(pids: list[int], agent: str) -> int:
         if b'"name": "%s"' % agent.encode() in config:
             return pid
     raise AssertionError(f"no process for agent {agent}")
+
+
+def test_realtime_overload_is_reported_while_running(
+    tmp_path: Path, runs: list[RunProcess]
+) -> None:
+    """An agent too slow for the rate: its late ticks are counted and the run says why."""
+    experiment = write_toy_experiment(tmp_path / "toy.toml", mode="realtime", duration_s=3.0)
+    text = experiment.read_text(encoding="utf-8")
+    slow = "[agents.b]\ninitial_state = [1.0]\nparams = { gain = 2.0, work_s = 0.03 }"
+    experiment.write_text(text.replace("[agents.b]\ninitial_state = [1.0]", slow, 1))
+    run = start(runs, tmp_path, experiment)
+    assert run.wait(120) == 0, run.output()
+    output = run.output()
+    assert "do not keep up with 50 Hz" in output, output
+    assert "late answers: " in output and "b=" in output, output
+    recording = read_recording(run.out)
+    late = [m for m in recording["/orchestrator/ticks"] if "b" in m["late"]]
+    assert len(late) > 50  # b takes 30 ms per 20 ms tick
