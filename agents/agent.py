@@ -162,7 +162,7 @@ class Agent:
         # changes; it guards everything a tick reads or writes.
         self._engine_lock = threading.RLock()
         self._ticking = False  # ticks run only between arm and stop
-        self._realtime = config.mode == "realtime"
+        self._realtime = False  # set by every tick message (the manager's mode)
         self._horizon = -1  # highest tick released by the manager
         self._horizon_t = 0.0  # its experiment time [s]
         self._tick_missing: frozenset[str] = _NOBODY  # realtime: missing for the newest tick
@@ -487,6 +487,7 @@ class Agent:
                 missing = frozenset(names[i] for i in tick.missing if i < len(names))
             else:
                 missing = _NOBODY
+            self._realtime = tick.realtime  # the manager's mode, whatever this agent was told
             if self._realtime:
                 if tick.k <= self._horizon:
                     return  # duplicate or out of order

@@ -22,8 +22,6 @@ from hilswarm.agents.registry import resolve_controller, resolve_vehicle
 
 #: Board watchdog when the experiment gives none [s].
 DEFAULT_WATCHDOG_S = 0.5
-#: Tick modes an agent runs in (see :mod:`hilswarm.agents.agent`).
-AGENT_MODES: tuple[str, ...] = ("lockstep", "realtime")
 
 
 class AgentConfigError(HilswarmError, ValueError):
@@ -53,8 +51,6 @@ class AgentConfig:
         seed: seed for simulated sensors (mocap noise), or ``None``.
         mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
         mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
-        mode: ``"lockstep"`` or ``"realtime"`` (how released ticks are run, see the module
-            docstring).
     """
 
     experiment: str
@@ -74,7 +70,6 @@ class AgentConfig:
     seed: int | None = None
     mocap_noise_std_m: float = 0.0
     mocap_noise_std_rad: float = 0.0
-    mode: str = "lockstep"
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
@@ -90,10 +85,6 @@ class AgentConfig:
             raise AgentConfigError(f"agent {self.name!r} lists itself as its own neighbour")
         if not (isinstance(self.dt, int | float) and math.isfinite(self.dt) and self.dt > 0):
             raise AgentConfigError(f"agent {self.name!r}: dt must be > 0 [s], got {self.dt!r}")
-        if self.mode not in AGENT_MODES:
-            raise AgentConfigError(
-                f"agent {self.name!r}: mode must be 'lockstep' or 'realtime', got {self.mode!r}"
-            )
 
     @property
     def index(self) -> int:

@@ -217,7 +217,9 @@ class BusKeys:
 # ---------------------------------------------------------------------------------------------
 
 _VECTOR_HEADER = struct.Struct("<qd")
-_TICK_HEADER = struct.Struct("<qdH")
+_TICK_HEADER = struct.Struct("<qdBH")
+#: Flag bits of a tick message.
+TICK_REALTIME = 0x01
 _REPORT_HEADER = struct.Struct("<dddIHH")
 
 
@@ -259,21 +261,31 @@ class TickMessage:
       ``missing`` lists the lost agents, whose outputs count as ``None`` from then on. The
       same ``k`` may be sent again when an agent is lost, to announce it.
 
+    The mode travels in every message, so an agent (also one started on another machine with
+    ``hilswarm agent``) always runs ticks the way the manager schedules them.
+
     Attributes:
         k: the newest tick released (>= 0).
         t: experiment time of tick ``k`` [s] (``k * dt``).
         missing: indices (experiment order) of agents whose outputs are not coming.
+        realtime: ``True`` in realtime mode, ``False`` in lockstep.
     """
 
     k: int
     t: float
     missing: tuple[int, ...] = ()
+    realtime: bool = False
 
 
 def encode_tick(message: TickMessage) -> bytes:
-    """Encode a :class:`TickMessage` (int64 k, float64 t, uint16 count, uint16 indices)."""
+    """Encode a :class:`TickMessage`.
+
+    Layout (little-endian): int64 k, float64 t [s], uint8 flags (:data:`TICK_REALTIME`),
+    uint16 count, then ``count`` uint16 agent indices.
+    """
     missing = message.missing
-    return _TICK_HEADER.pack(message.k, message.t, len(missing)) + struct.pack(
+    flags = TICK_REALTIME if message.realtime else 0
+    return _TICK_HEADER.pack(message.k, message.t, flags, len(missing)) + struct.pack(
         f"<{len(missing)}H", *missing
     )
 
@@ -282,12 +294,14 @@ def decode_tick(payload: bytes | bytearray | memoryview) -> TickMessage:
     """Decode :func:`encode_tick`'s bytes."""
     size = len(payload)
     if size < _TICK_HEADER.size:
-        raise BusMessageError(f"tick message of {size} bytes: expected at least 18")
-    k, t, count = _TICK_HEADER.unpack_from(payload)
+        raise BusMessageError(
+            f"tick message of {size} bytes: expected at least {_TICK_HEADER.size}"
+        )
+    k, t, flags, count = _TICK_HEADER.unpack_from(payload)
     if size != _TICK_HEADER.size + 2 * count:
         raise BusMessageError(f"tick message of {size} bytes does not hold {count} indices")
     missing = struct.unpack_from(f"<{count}H", payload, _TICK_HEADER.size) if count else ()
-    return TickMessage(k, t, tuple(missing))
+    return TickMessage(k, t, tuple(missing), realtime=bool(flags & TICK_REALTIME))
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,6 @@ def agent_config_for(
         seed=experiment.seed,
         mocap_noise_std_m=mocap_noise_std_m,
         mocap_noise_std_rad=mocap_noise_std_rad,
-        mode=experiment.mode,
     )
 
 

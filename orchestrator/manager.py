@@ -137,6 +137,7 @@ class InstanceManager:
         self.n = len(self.names)
         self.dt = experiment.dt
         self.mode = experiment.mode
+        self._realtime = experiment.mode == "realtime"
         self._listen = list(listen)
         self._connect = list(connect)
         self._clock = clock
@@ -638,7 +639,8 @@ class InstanceManager:
                 self.alive.add(item[1])
 
     def _send_tick(self, k: int, missing: Sequence[int]) -> None:
-        self._tick_pub.put(bus.encode_tick(bus.TickMessage(k, k * self.dt, tuple(missing))))
+        message = bus.TickMessage(k, k * self.dt, tuple(missing), realtime=self._realtime)
+        self._tick_pub.put(bus.encode_tick(message))
 
     def _on_control(self, payload: bytes, k: int) -> None:
         try:

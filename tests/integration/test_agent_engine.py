@@ -9,7 +9,7 @@ from hilswarm.agents.agent import NEIGHBOUR_HISTORY, STALE_TICK_PERIODS, Agent, 
 DT = 0.01
 
 
-def agent(mode: str) -> Agent:
+def agent() -> Agent:
     config = AgentConfig(
         experiment="engine",
         name="b",
@@ -19,13 +19,12 @@ def agent(mode: str) -> Agent:
         link=None,
         controller="consensus",
         dt=DT,
-        mode=mode,
     )
     return Agent(config, ["tcp/127.0.0.1:9"])  # never connected: no session is opened
 
 
 def test_outputs_of_a_neighbour_running_a_window_ahead_are_all_kept() -> None:
-    engine = agent("lockstep")
+    engine = agent()
     engine.k = 10
     for k in range(0, 30):  # the neighbour is up to 19 ticks ahead
         engine.receive_neighbour("a", bus.encode_vector(k, k * DT, [float(k)]))
@@ -35,11 +34,11 @@ def test_outputs_of_a_neighbour_running_a_window_ahead_are_all_kept() -> None:
 
 def test_a_bad_neighbour_message_raises() -> None:
     with pytest.raises(bus.BusMessageError):
-        agent("lockstep").receive_neighbour("a", b"short")
+        agent().receive_neighbour("a", b"short")
 
 
 def test_realtime_ticks_that_queued_up_are_stale_and_a_moved_schedule_is_not() -> None:
-    engine = agent("realtime")
+    engine = agent()
     engine.k = 0
     clock = 100.0
     for k in range(1, 50):  # on schedule: a constant delay of 1 ms
@@ -54,3 +53,11 @@ def test_realtime_ticks_that_queued_up_are_stale_and_a_moved_schedule_is_not() -
     # A pause of 3 s (resume re-anchors the schedule): late, but alone, so not stale.
     assert not engine._is_stale(55 * DT, clock + 55 * DT + 3.0)
     assert not engine._is_stale(56 * DT, clock + 56 * DT + 3.0)
+
+
+def test_tick_messages_carry_the_mode() -> None:
+    for realtime in (False, True):
+        message = bus.TickMessage(7, 0.07, (1, 3), realtime=realtime)
+        assert bus.decode_tick(bus.encode_tick(message)) == message
+    with pytest.raises(bus.BusMessageError):
+        bus.decode_tick(bus.encode_tick(bus.TickMessage(1, 0.01, (2,)))[:-1])
