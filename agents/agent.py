@@ -487,7 +487,7 @@ class Agent:
                 missing = frozenset(names[i] for i in tick.missing if i < len(names))
             else:
                 missing = _NOBODY
-            self._realtime = tick.realtime  # the manager's mode, whatever this agent was told
+            self._realtime = tick.realtime  # the manager's mode decides how ticks run
             if self._realtime:
                 if tick.k <= self._horizon:
                     return  # duplicate or out of order

@@ -156,7 +156,7 @@ class InstanceManager:
         self._next_flush = 0.0
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
-        self.window = experiment.lockstep_window if self.mode == "lockstep" else 1
+        self.window = 1 if self._realtime else experiment.lockstep_window
         self._tick = TickWindow(self.n, self.window)
         self._frames: list[bytes] = []
         self.agent_states: dict[str, str] = {}
@@ -243,7 +243,7 @@ class InstanceManager:
         """The callback of agent ``i``'s y key (runs on a Zenoh thread: keep it short)."""
         clock, wall_ns, lock, tick = self._clock, self._wall_ns, self._lock, self._tick
         keep, record = self._frames.append, self._sink is not None
-        lockstep = self.mode != "realtime"
+        lockstep = not self._realtime
         put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
         window, arrived, answered_at, count = (
             tick.window,
@@ -422,7 +422,7 @@ class InstanceManager:
 
     def run(self) -> RunSummary:
         """Send every tick of the experiment, then stop the agents. Returns the summary."""
-        realtime = self.mode == "realtime"
+        realtime = self._realtime
         clock, get, dt = self._clock, self._events.get, self.dt
         tick = self._tick
         with self._lock:
@@ -536,7 +536,8 @@ class InstanceManager:
         if not self._paused:
             self._release_window()
         now = self._clock()
-        if not accounts and now - tick.last_progress > self.answer_timeout_s:
+        waiting = tick.base <= tick.released and not self._paused  # an open tick to answer
+        if waiting and not accounts and now - tick.last_progress > self.answer_timeout_s:
             for j in tick.unanswered():
                 self._on_agent_gone(
                     self.names[j], tick.base, f"no answer within {self.answer_timeout_s} s"
@@ -654,12 +655,14 @@ class InstanceManager:
             self._estop_tick = k
             self._record_event(ORCHESTRATOR, "estop", k=k, detail=reason)
             self._stop_reason = f"e-stop at tick {k}{': ' + reason if reason else ''}"
-        elif command is bus.ControlCommand.PAUSE:
+        elif command is bus.ControlCommand.PAUSE and not self._paused:
             self._paused = True
+            self._record_event(ORCHESTRATOR, "paused", k=k, detail=reason)
             self._publish_state("paused", reason)
-        elif command is bus.ControlCommand.RESUME:
+        elif command is bus.ControlCommand.RESUME and self._paused:
             self._paused = False
             self._reanchor = True
+            self._record_event(ORCHESTRATOR, "running", k=k, detail=reason)
             self._publish_state("running", reason)
 
     def _on_agent_safe(self, name: str, detail: str, k: int) -> None:
@@ -680,7 +683,7 @@ class InstanceManager:
         with self._lock:
             self._tick.lost[i] = True
             self._tick.recount()
-        if self.mode == "lockstep" and self._tick.released >= 0 and not self._stop_reason:
+        if not self._realtime and self._tick.released >= 0 and not self._stop_reason:
             # Tell the neighbours now: they may be waiting for this agent's output.
             self._send_tick(self._tick.released, sorted(self.lost))
         self.summary.lost.append(name)
