@@ -164,7 +164,7 @@ class Agent:
         self._ticking = False  # ticks run only between arm and stop
         self._realtime = False  # set by every tick message (the manager's mode)
         self._horizon = -1  # highest tick released by the manager
-        self._horizon_t = 0.0  # its experiment time [s]
+        self._horizon_t = 0.0  # realtime: its experiment time [s]
         self._tick_missing: frozenset[str] = _NOBODY  # realtime: missing for the newest tick
         self._lost: frozenset[str] = _NOBODY  # lockstep: agents the manager reports lost
         self._delay_estimate = math.inf  # realtime: tick arrival - schedule, minimum [s]
@@ -496,8 +496,7 @@ class Agent:
                 self._horizon, self._horizon_t, self._tick_missing = tick.k, tick.t, missing
             else:
                 self._lost = self._lost | missing if missing else self._lost
-                if tick.k > self._horizon:
-                    self._horizon, self._horizon_t = tick.k, tick.t
+                self._horizon = max(self._horizon, tick.k)
             if self._ticking:
                 self._advance()
 

@@ -40,7 +40,6 @@ class TickWindow:
         self.count = np.zeros(window, dtype=np.int64)
         self.scheduled = np.zeros(window)
         self.sent = np.zeros(window)
-        self.done = np.zeros(window)
         self.arrived = np.zeros((window, n), dtype=bool)
         self.answered_at = np.full((window, n), np.nan)  # manager clock [s]
         self.lost = np.zeros(n, dtype=bool)
