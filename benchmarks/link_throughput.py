@@ -61,8 +61,11 @@ def tick_writes(k: int) -> dict[int, int]:
     return writes
 
 
-def run(serial_board: SerialBoard, exchange: Callable[[dict[int, int], list[int]], object],
-        seconds: float) -> tuple[float, float, float]:
+def run(
+    serial_board: SerialBoard,
+    exchange: Callable[[dict[int, int], list[int]], object],
+    seconds: float,
+) -> tuple[float, float, float]:
     """Tick for ``seconds``; return (ticks/s, request bytes/tick, reply bytes/tick)."""
     for k in range(20):  # warm up
         exchange(tick_writes(k), READS)
@@ -83,10 +86,15 @@ def report(name: str, rate: float, sent: float, received: float, *, bound: bool)
     per_tick = sent + received
     wire_bound = BAUD / BITS_PER_BYTE / per_tick
     fraction = rate / wire_bound
-    note = f"{100 * fraction:5.1f} % of the {wire_bound:.0f} ticks/s wire bound" if bound else \
-        "(no UART timing)"
-    print(f"{name:<16} {rate:8.0f} ticks/s  {sent:4.1f} B out + {received:4.1f} B in "
-          f"= {per_tick:4.1f} B/tick  {note}")
+    note = (
+        f"{100 * fraction:5.1f} % of the {wire_bound:.0f} ticks/s wire bound"
+        if bound
+        else "(no UART timing)"
+    )
+    print(
+        f"{name:<16} {rate:8.0f} ticks/s  {sent:4.1f} B out + {received:4.1f} B in "
+        f"= {per_tick:4.1f} B/tick  {note}"
+    )
     return fraction
 
 
@@ -117,10 +125,13 @@ def bench_simavr(paced: bool, seconds: float) -> float | None:
         wall = time.monotonic() - wall0
         harness_cpu = (cpu_seconds(process.pid) - harness0) / wall
         host_cpu = (time.process_time() - host0) / wall
-    fraction = report(f"simavr {'paced' if paced else 'unpaced'}", rate, sent, received,
-                      bound=paced)
-    print(f"{'':<16} CPU: harness {100 * harness_cpu:3.0f} %, host (this process) "
-          f"{100 * host_cpu:3.0f} % of one core")
+    fraction = report(
+        f"simavr {'paced' if paced else 'unpaced'}", rate, sent, received, bound=paced
+    )
+    print(
+        f"{'':<16} CPU: harness {100 * harness_cpu:3.0f} %, host (this process) "
+        f"{100 * host_cpu:3.0f} % of one core"
+    )
     return fraction
 
 
@@ -129,7 +140,8 @@ def bench_loopback(kind: str, seconds: float) -> None:
     sim = SimBoard("uno", dt=0.01)
     sim.set_analog_input(14, 2.5)
     server: AbstractContextManager[PtyWireServer | SocketWireServer] = (
-        PtyWireServer(sim) if kind == "pty" else SocketWireServer(sim))
+        PtyWireServer(sim) if kind == "pty" else SocketWireServer(sim)
+    )
     with server as running, SerialBoard(running.url) as board:
         board.configure(CONFIG, watchdog_s=0)
         rate, sent, received = run(board, board.exchange, seconds)
@@ -141,35 +153,53 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--short", action="store_true", help="a few seconds per transport")
     parser.add_argument("--seconds", type=float, default=None, help="seconds per transport")
-    parser.add_argument("--repeat", type=int, default=1,
-                        help="measure the paced simavr transport this many times (spread)")
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="measure the paced simavr transport this many times (spread)",
+    )
     args = parser.parse_args(argv)
     seconds = args.seconds if args.seconds is not None else (3.0 if args.short else 15.0)
-    print(f"Blimpduino-like tick (6 digital out, 2 PWM, 1 servo, 1 analog in), {seconds:.0f} s "
-          f"per transport, {BAUD} baud 8N1")
-    print("load average (1, 5, 15 min): {:.2f} {:.2f} {:.2f} on {} CPUs".format(
-        *os.getloadavg(), os.cpu_count()))
-    fractions = [f for f in (bench_simavr(paced=True, seconds=seconds)
-                             for _ in range(max(1, args.repeat))) if f is not None]
+    print(
+        f"Blimpduino-like tick (6 digital out, 2 PWM, 1 servo, 1 analog in), {seconds:.0f} s "
+        f"per transport, {BAUD} baud 8N1"
+    )
+    print(
+        "load average (1, 5, 15 min): {:.2f} {:.2f} {:.2f} on {} CPUs".format(
+            *os.getloadavg(), os.cpu_count()
+        )
+    )
+    fractions = [
+        f
+        for f in (bench_simavr(paced=True, seconds=seconds) for _ in range(max(1, args.repeat)))
+        if f is not None
+    ]
     bench_simavr(paced=False, seconds=seconds)
     bench_loopback("pty", seconds)
     bench_loopback("socket", seconds)
     if fractions:
         if len(fractions) > 1:
-            print(f"paced simavr over {len(fractions)} runs: min {100 * min(fractions):.1f} %, "
-                  f"median {100 * statistics.median(fractions):.1f} %, max "
-                  f"{100 * max(fractions):.1f} % of the wire bound")
+            print(
+                f"paced simavr over {len(fractions)} runs: min {100 * min(fractions):.1f} %, "
+                f"median {100 * statistics.median(fractions):.1f} %, max "
+                f"{100 * max(fractions):.1f} % of the wire bound"
+            )
         fraction = max(fractions)
         wire_us = PER_TICK_BYTES * BITS_PER_BYTE / BAUD * 1e6
         tick_us = wire_us / fraction
         budget_us = wire_us / 0.9 - wire_us
-        print(f"best paced tick: {tick_us:.0f} us = wire {wire_us:.0f} us + the rest "
-              f"{tick_us - wire_us:.0f} us (the 90 % target leaves {budget_us:.0f} us for "
-              "firmware, host and scheduling)")
+        print(
+            f"best paced tick: {tick_us:.0f} us = wire {wire_us:.0f} us + the rest "
+            f"{tick_us - wire_us:.0f} us (the 90 % target leaves {budget_us:.0f} us for "
+            "firmware, host and scheduling)"
+        )
         verdict = "meets" if fraction >= 0.9 else "MISSES"
         best = f" (best of {len(fractions)} runs)" if len(fractions) > 1 else ""
-        print(f"paced simavr: {100 * fraction:.1f} % of the wire bound{best}, {verdict} the "
-              ">= 90 % target")
+        print(
+            f"paced simavr: {100 * fraction:.1f} % of the wire bound{best}, {verdict} the "
+            ">= 90 % target"
+        )
     return 0
 
 

@@ -91,9 +91,7 @@ def recover(
     else:
         target = Path(destination) if destination is not None else default_destination(source)
     if target.resolve() == source.resolve():
-        raise RecordingError(
-            f"the destination {target} is the source; use in_place to replace it"
-        )
+        raise RecordingError(f"the destination {target} is the source; use in_place to replace it")
     source_bytes = source.stat().st_size
     mcap_io.recover(source, target)
     topics = Counter(topic for topic, _, _ in mcap_io.iter_messages(target))

@@ -49,6 +49,7 @@ def number_option(value: object, what: str, *, positive: bool = False) -> float:
         raise DeviceError(f"{what}: expected {finite}, got {value!r}")
     return number
 
+
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 
 

@@ -23,7 +23,7 @@ def cobs_encode(data: bytes | bytearray | memoryview) -> bytes:
         start = 0
         while len(run) - start >= _MAX_BLOCK - 1:
             out.append(_MAX_BLOCK)
-            out += run[start:start + _MAX_BLOCK - 1]
+            out += run[start : start + _MAX_BLOCK - 1]
             start += _MAX_BLOCK - 1
         out.append(len(run) - start + 1)
         out += run[start:]

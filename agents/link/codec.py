@@ -82,14 +82,16 @@ class MsgType(enum.IntEnum):
 
 
 #: Request types a board accepts.
-REQUEST_TYPES = frozenset({MsgType.HELLO, MsgType.CONFIG, MsgType.TICK, MsgType.ESTOP,
-                           MsgType.SET_ID})
+REQUEST_TYPES = frozenset(
+    {MsgType.HELLO, MsgType.CONFIG, MsgType.TICK, MsgType.ESTOP, MsgType.SET_ID}
+)
 
 
 def _u8(value: int, what: str, detail: int) -> bytes:
     if not 0 <= value <= 0xFF:
         raise WireFormatError(
-            f"{what} = {value} does not fit in a u8 (0-255)", code=ErrorCode.BAD_VALUE,
+            f"{what} = {value} does not fit in a u8 (0-255)",
+            code=ErrorCode.BAD_VALUE,
             detail=detail & 0xFF,
         )
     return bytes((value,))
@@ -98,7 +100,8 @@ def _u8(value: int, what: str, detail: int) -> bytes:
 def _u16(value: int, what: str, detail: int) -> bytes:
     if not 0 <= value <= 0xFFFF:
         raise WireFormatError(
-            f"{what} = {value} does not fit in a u16 (0-65535)", code=ErrorCode.BAD_VALUE,
+            f"{what} = {value} does not fit in a u16 (0-65535)",
+            code=ErrorCode.BAD_VALUE,
             detail=detail & 0xFF,
         )
     return value.to_bytes(2, "little")
@@ -107,7 +110,8 @@ def _u16(value: int, what: str, detail: int) -> bytes:
 def _u24(value: int, what: str, detail: int) -> bytes:
     if not 0 <= value < (1 << PIN_MASK_BITS):
         raise WireFormatError(
-            f"{what} = {value:#x} does not fit in a u24", code=ErrorCode.BAD_VALUE,
+            f"{what} = {value:#x} does not fit in a u24",
+            code=ErrorCode.BAD_VALUE,
             detail=detail & 0xFF,
         )
     return value.to_bytes(3, "little")
@@ -116,7 +120,8 @@ def _u24(value: int, what: str, detail: int) -> bytes:
 def _bad_length(msg_type: int, expected: str, got: int) -> WireFormatError:
     name = MsgType(msg_type).name if msg_type in MsgType._value2member_map_ else hex(msg_type)
     return WireFormatError(
-        f"{name} body is {got} bytes; expected {expected}", code=ErrorCode.BAD_LENGTH,
+        f"{name} body is {got} bytes; expected {expected}",
+        code=ErrorCode.BAD_LENGTH,
         detail=msg_type & 0xFF,
     )
 
@@ -132,7 +137,8 @@ def mask_of_pins(pins: Sequence[int]) -> int:
     for pin in pins:
         if not 0 <= pin < PIN_MASK_BITS:
             raise WireFormatError(
-                f"pin {pin} cannot be put in a 24-bit pin mask", code=ErrorCode.BAD_PIN,
+                f"pin {pin} cannot be put in a 24-bit pin mask",
+                code=ErrorCode.BAD_PIN,
                 detail=pin & 0xFF,
             )
         mask |= 1 << pin
@@ -177,8 +183,7 @@ class HelloReplyMsg:
             + _u16(self.board_id, "board_id", t)
             + _u8(self.status, "status", t)
             + _u8(len(self.capabilities), "n_pins", t)
-            + b"".join(_u8(c, f"capability of pin {i}", t)
-                       for i, c in enumerate(self.capabilities))
+            + b"".join(_u8(c, f"capability of pin {i}", t) for i, c in enumerate(self.capabilities))
         )
 
 
@@ -237,13 +242,16 @@ class PinWrite:
         """``pin:u8`` followed by the value in the width of the mode."""
         if self.mode == PinMode.PWM:
             return _u8(self.pin, "pin", self.pin) + _u8(
-                self.value, f"PWM duty of pin {self.pin}", self.pin)
+                self.value, f"PWM duty of pin {self.pin}", self.pin
+            )
         if self.mode == PinMode.SERVO:
             return _u8(self.pin, "pin", self.pin) + _u16(
-                self.value, f"servo pulse [µs] of pin {self.pin}", self.pin)
+                self.value, f"servo pulse [µs] of pin {self.pin}", self.pin
+            )
         raise WireFormatError(
             f"pin {self.pin}: a TICK write needs mode PWM or SERVO, got {self.mode!r}",
-            code=ErrorCode.BAD_PIN, detail=self.pin & 0xFF,
+            code=ErrorCode.BAD_PIN,
+            detail=self.pin & 0xFF,
         )
 
 
@@ -260,8 +268,11 @@ class TickMsg:
     def body(self) -> bytes:
         """Encoded body."""
         t = self.msg_type
-        return (_u24(self.dout, "dout", t) + _u24(self.rmask, "rmask", t)
-                + b"".join(w.encode() for w in self.writes))
+        return (
+            _u24(self.dout, "dout", t)
+            + _u24(self.rmask, "rmask", t)
+            + b"".join(w.encode() for w in self.writes)
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,10 +289,16 @@ class TickReplyMsg:
         """Encoded body."""
         t = self.msg_type
         if not 0 <= self.board_time_us < 1 << 32:
-            raise WireFormatError(f"board_time_us = {self.board_time_us} does not fit in a u32",
-                                  code=ErrorCode.BAD_VALUE, detail=t)
-        return (_u8(self.status, "status", t) + self.board_time_us.to_bytes(4, "little")
-                + b"".join(_u16(s, "sample", t) for s in self.samples))
+            raise WireFormatError(
+                f"board_time_us = {self.board_time_us} does not fit in a u32",
+                code=ErrorCode.BAD_VALUE,
+                detail=t,
+            )
+        return (
+            _u8(self.status, "status", t)
+            + self.board_time_us.to_bytes(4, "little")
+            + b"".join(_u16(s, "sample", t) for s in self.samples)
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -350,8 +367,19 @@ class ErrorMsg:
         return _u8(self.code, "code", t) + _u8(self.detail, "detail", t)
 
 
-Message = (HelloMsg | HelloReplyMsg | ConfigMsg | ConfigReplyMsg | TickMsg | TickReplyMsg
-           | EstopMsg | EstopReplyMsg | SetIdMsg | SetIdReplyMsg | ErrorMsg)
+Message = (
+    HelloMsg
+    | HelloReplyMsg
+    | ConfigMsg
+    | ConfigReplyMsg
+    | TickMsg
+    | TickReplyMsg
+    | EstopMsg
+    | EstopReplyMsg
+    | SetIdMsg
+    | SetIdReplyMsg
+    | ErrorMsg
+)
 
 
 # --------------------------------------------------------------------------- encoding
@@ -363,7 +391,8 @@ def encode_payload(msg: Message) -> bytes:
     if len(payload) > MAX_PAYLOAD:
         raise WireFormatError(
             f"{msg.msg_type.name} payload is {len(payload)} bytes; the maximum is {MAX_PAYLOAD}",
-            code=ErrorCode.FRAME_TOO_LONG, detail=int(msg.msg_type),
+            code=ErrorCode.FRAME_TOO_LONG,
+            detail=int(msg.msg_type),
         )
     return payload
 
@@ -402,8 +431,9 @@ class TickLayout:
     packer: struct.Struct
 
     @classmethod
-    def build(cls, modes: Mapping[int, int], write_pins: Iterable[int],
-              read_pins: Iterable[int]) -> TickLayout | None:
+    def build(
+        cls, modes: Mapping[int, int], write_pins: Iterable[int], read_pins: Iterable[int]
+    ) -> TickLayout | None:
         """Layout for ``modes`` (pin -> PinMode); None if a written pin is not an output or a
         read pin does not fit the 24-bit mask (the caller reports those)."""
         digital: list[int] = []
@@ -421,9 +451,14 @@ class TickLayout:
             return None
         wide.sort()
         fields = "".join("BB" if modes[pin] == PinMode.PWM else "BH" for pin in wide)
-        return cls(tuple(digital), sum(1 << pin for pin in digital), tuple(wide),
-                   sum(1 << pin for pin in reads), tuple(reads),
-                   struct.Struct("<BBHBHB" + fields))
+        return cls(
+            tuple(digital),
+            sum(1 << pin for pin in digital),
+            tuple(wide),
+            sum(1 << pin for pin in reads),
+            tuple(reads),
+            struct.Struct("<BBHBHB" + fields),
+        )
 
     def payload(self, seq: int, dout: int, writes: Mapping[int, int]) -> bytes:
         """TICK payload with ``dout`` and the values of ``wide_pins`` taken from ``writes``.
@@ -431,8 +466,14 @@ class TickLayout:
         Raises:
             struct.error: a value does not fit its field (u8 PWM duty, u16 servo pulse).
         """
-        values: list[int] = [MsgType.TICK, seq, dout & 0xFFFF, dout >> 16,
-                             self.rmask & 0xFFFF, self.rmask >> 16]
+        values: list[int] = [
+            MsgType.TICK,
+            seq,
+            dout & 0xFFFF,
+            dout >> 16,
+            self.rmask & 0xFFFF,
+            self.rmask >> 16,
+        ]
         for pin in self.wide_pins:
             values += (pin, writes[pin])
         return self.packer.pack(*values)
@@ -450,7 +491,7 @@ def _parse_config(seq: int, body: bytes) -> ConfigMsg:
     if len(body) < 2 or (len(body) - 2) % 4:
         raise _bad_length(MsgType.CONFIG, "2 + 4n (watchdog_ms, then pin/mode/safe)", len(body))
     entries = tuple(
-        ConfigEntry(body[i], body[i + 1], int.from_bytes(body[i + 2:i + 4], "little"))
+        ConfigEntry(body[i], body[i + 1], int.from_bytes(body[i + 2 : i + 4], "little"))
         for i in range(2, len(body), 4)
     )
     return ConfigMsg(seq, int.from_bytes(body[0:2], "little"), entries)
@@ -475,12 +516,14 @@ def parse_tick_body(seq: int, body: bytes, modes: Sequence[int]) -> TickMsg:
         if mode not in (PinMode.PWM, PinMode.SERVO):
             raise WireFormatError(
                 f"TICK writes pin {pin}, which is configured {PinMode(mode).name}, "
-                "not PWM or SERVO", code=ErrorCode.BAD_PIN, detail=pin)
+                "not PWM or SERVO",
+                code=ErrorCode.BAD_PIN,
+                detail=pin,
+            )
         width = 1 if mode == PinMode.PWM else 2
         if index + 1 + width > len(body):
-            raise _bad_length(MsgType.TICK, f"{width} more value byte(s) for pin {pin}",
-                              len(body))
-        value = int.from_bytes(body[index + 1:index + 1 + width], "little")
+            raise _bad_length(MsgType.TICK, f"{width} more value byte(s) for pin {pin}", len(body))
+        value = int.from_bytes(body[index + 1 : index + 1 + width], "little")
         writes.append(PinWrite(pin, value, PinMode(mode)))
         index += 1 + width
     return TickMsg(seq, dout, rmask, tuple(writes))
@@ -497,14 +540,18 @@ def parse_payload(payload: bytes, *, modes: Sequence[int] | None = None) -> Mess
         WireFormatError: UNKNOWN_TYPE, BAD_LENGTH, or (TICK) BAD_PIN; ``detail`` as on the wire.
     """
     if len(payload) < 2:
-        raise WireFormatError(f"payload of {len(payload)} bytes has no type and seq",
-                              code=ErrorCode.BAD_LENGTH, detail=0)
+        raise WireFormatError(
+            f"payload of {len(payload)} bytes has no type and seq",
+            code=ErrorCode.BAD_LENGTH,
+            detail=0,
+        )
     if payload[0] == MsgType.TICK_REPLY and len(payload) >= 7 and not (len(payload) - 7) % 2:
         return parse_tick_reply(payload)  # the reply of every control tick: the short way
     raw_type, seq, body = payload[0], payload[1], bytes(payload[2:])
     if raw_type not in MsgType._value2member_map_:
-        raise WireFormatError(f"unknown message type {raw_type:#04x}",
-                              code=ErrorCode.UNKNOWN_TYPE, detail=raw_type)
+        raise WireFormatError(
+            f"unknown message type {raw_type:#04x}", code=ErrorCode.UNKNOWN_TYPE, detail=raw_type
+        )
     t = MsgType(raw_type)
     if t in (MsgType.HELLO, MsgType.ESTOP):
         _expect_len(t, body, 0)
@@ -524,8 +571,11 @@ def parse_payload(payload: bytes, *, modes: Sequence[int] | None = None) -> Mess
 def parse_tick_reply(payload: bytes | bytearray) -> TickReplyMsg:
     """Decode a TICK_REPLY payload whose type and length (7 + 2n bytes) the caller checked."""
     count = (len(payload) - 7) >> 1
-    samples = _SAMPLES[count].unpack_from(payload, 7) if count < len(_SAMPLES) else tuple(
-        int.from_bytes(payload[i:i + 2], "little") for i in range(7, len(payload), 2))
+    samples = (
+        _SAMPLES[count].unpack_from(payload, 7)
+        if count < len(_SAMPLES)
+        else tuple(int.from_bytes(payload[i : i + 2], "little") for i in range(7, len(payload), 2))
+    )
     return TickReplyMsg(payload[1], payload[2], _U32.unpack_from(payload, 3)[0], samples)
 
 
@@ -538,15 +588,22 @@ def _parse_reply(t: MsgType, seq: int, body: bytes) -> Message:
     if t == MsgType.HELLO_REPLY:
         if len(body) < 7 or len(body) != 7 + body[6]:
             raise _bad_length(t, "7 + n_pins", len(body))
-        return HelloReplyMsg(seq, body[0], body[1], body[2], int.from_bytes(body[3:5], "little"),
-                             body[5], tuple(body[7:]))
+        return HelloReplyMsg(
+            seq,
+            body[0],
+            body[1],
+            body[2],
+            int.from_bytes(body[3:5], "little"),
+            body[5],
+            tuple(body[7:]),
+        )
     if t == MsgType.CONFIG_REPLY:
         _expect_len(t, body, 2)
         return ConfigReplyMsg(seq, body[0], body[1])
     if t == MsgType.TICK_REPLY:
         if len(body) < 5 or (len(body) - 5) % 2:
             raise _bad_length(t, "5 + 2n (status, board_time_us, samples)", len(body))
-        samples = tuple(int.from_bytes(body[i:i + 2], "little") for i in range(5, len(body), 2))
+        samples = tuple(int.from_bytes(body[i : i + 2], "little") for i in range(5, len(body), 2))
         return TickReplyMsg(seq, body[0], int.from_bytes(body[1:5], "little"), samples)
     if t == MsgType.ESTOP_REPLY:
         _expect_len(t, body, 1)
@@ -568,8 +625,12 @@ def _safe_value_ok(mode: int, value: int) -> bool:
         return 0 <= value <= PWM_MAX
     if mode == PinMode.SERVO:
         return SERVO_MIN_US <= value <= SERVO_MAX_US
-    return value == 0 or mode in (PinMode.UNUSED, PinMode.DIGITAL_IN, PinMode.ANALOG_IN,
-                                  PinMode.DIGITAL_IN_PULLUP)
+    return value == 0 or mode in (
+        PinMode.UNUSED,
+        PinMode.DIGITAL_IN,
+        PinMode.ANALOG_IN,
+        PinMode.DIGITAL_IN_PULLUP,
+    )
 
 
 def check_config(msg: ConfigMsg, capabilities: Sequence[int]) -> None:
@@ -583,54 +644,76 @@ def check_config(msg: ConfigMsg, capabilities: Sequence[int]) -> None:
     for e in msg.entries:
         reserved = e.pin < len(capabilities) and capabilities[e.pin] & Capability.RESERVED
         if e.pin >= min(PIN_COUNT, len(capabilities)) or reserved or e.pin in seen:
-            why = ("listed twice" if e.pin in seen else
-                   "reserved (serial link)" if reserved else f"not a pin (0-{PIN_COUNT - 1})")
-            raise WireFormatError(f"CONFIG pin {e.pin} is {why}", code=ErrorCode.BAD_PIN,
-                                  detail=e.pin)
+            why = (
+                "listed twice"
+                if e.pin in seen
+                else "reserved (serial link)"
+                if reserved
+                else f"not a pin (0-{PIN_COUNT - 1})"
+            )
+            raise WireFormatError(
+                f"CONFIG pin {e.pin} is {why}", code=ErrorCode.BAD_PIN, detail=e.pin
+            )
         seen.add(e.pin)
     for e in msg.entries:
         if e.mode not in PinMode._value2member_map_:
-            raise WireFormatError(f"CONFIG pin {e.pin}: unknown mode {e.mode}",
-                                  code=ErrorCode.BAD_MODE, detail=e.pin)
+            raise WireFormatError(
+                f"CONFIG pin {e.pin}: unknown mode {e.mode}", code=ErrorCode.BAD_MODE, detail=e.pin
+            )
         need = MODE_CAPABILITY.get(PinMode(e.mode), Capability.NONE)
         if need and not capabilities[e.pin] & need:
             raise WireFormatError(
                 f"CONFIG pin {e.pin}: mode {PinMode(e.mode).name} needs capability "
                 f"{need.name}, the pin has {Capability(capabilities[e.pin])!r}",
-                code=ErrorCode.BAD_MODE, detail=e.pin)
+                code=ErrorCode.BAD_MODE,
+                detail=e.pin,
+            )
     modes = {e.pin: e.mode for e in msg.entries}
     for servo_pin, pwm_pin in (TIMER1_PINS, TIMER1_PINS[::-1]):
         if modes.get(servo_pin) == PinMode.SERVO and modes.get(pwm_pin) == PinMode.PWM:
             raise WireFormatError(
                 f"CONFIG: SERVO on pin {servo_pin} uses Timer1, so pin {pwm_pin} cannot be PWM",
-                code=ErrorCode.PIN_CONFLICT, detail=pwm_pin)
+                code=ErrorCode.PIN_CONFLICT,
+                detail=pwm_pin,
+            )
     for e in msg.entries:
         if not _safe_value_ok(e.mode, e.safe):
             raise WireFormatError(
-                f"CONFIG pin {e.pin}: safe value {e.safe} out of range for "
-                f"{PinMode(e.mode).name}", code=ErrorCode.BAD_VALUE, detail=e.pin)
+                f"CONFIG pin {e.pin}: safe value {e.safe} out of range for {PinMode(e.mode).name}",
+                code=ErrorCode.BAD_VALUE,
+                detail=e.pin,
+            )
 
 
 def check_tick(msg: TickMsg, modes: Sequence[int]) -> None:
     """Apply the TICK rules (dout/rmask bits, servo range); raise WireFormatError if broken."""
     for pin in pins_of_mask(msg.dout):
         if pin >= len(modes) or modes[pin] != PinMode.DIGITAL_OUT:
-            raise WireFormatError(f"TICK dout sets pin {pin}, which is not DIGITAL_OUT",
-                                  code=ErrorCode.BAD_PIN, detail=pin)
+            raise WireFormatError(
+                f"TICK dout sets pin {pin}, which is not DIGITAL_OUT",
+                code=ErrorCode.BAD_PIN,
+                detail=pin,
+            )
     for pin in pins_of_mask(msg.rmask):
         if pin >= len(modes) or not PinMode(modes[pin]).is_input:
-            raise WireFormatError(f"TICK samples pin {pin}, which is not an input",
-                                  code=ErrorCode.BAD_PIN, detail=pin)
+            raise WireFormatError(
+                f"TICK samples pin {pin}, which is not an input", code=ErrorCode.BAD_PIN, detail=pin
+            )
     written: set[int] = set()
     for w in msg.writes:
         if w.pin in written:
-            raise WireFormatError(f"TICK writes pin {w.pin} twice (one write per pin)",
-                                  code=ErrorCode.BAD_PIN, detail=w.pin)
+            raise WireFormatError(
+                f"TICK writes pin {w.pin} twice (one write per pin)",
+                code=ErrorCode.BAD_PIN,
+                detail=w.pin,
+            )
         written.add(w.pin)
         if w.mode == PinMode.SERVO and not SERVO_MIN_US <= w.value <= SERVO_MAX_US:
             raise WireFormatError(
                 f"TICK servo pin {w.pin}: {w.value} µs outside {SERVO_MIN_US}-{SERVO_MAX_US}",
-                code=ErrorCode.BAD_VALUE, detail=w.pin)
+                code=ErrorCode.BAD_VALUE,
+                detail=w.pin,
+            )
 
 
 # --------------------------------------------------------------------------- decoder

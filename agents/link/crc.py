@@ -28,4 +28,3 @@ def crc16_ccitt_false(data: bytes | bytearray | memoryview, crc: int = CRC16_INI
 def crc16_bytes(data: bytes | bytearray | memoryview) -> bytes:
     """Return the CRC of ``data`` as the two bytes appended on the wire (little-endian)."""
     return crc_hqx(data, CRC16_INIT).to_bytes(2, "little")
-

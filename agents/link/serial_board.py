@@ -91,8 +91,14 @@ _log = logging.getLogger(__name__)
 #: Default serial speed [baud] (8N1).
 DEFAULT_BAUDRATE = 115200
 #: Options a link URL may carry in its query string (the rest goes to pyserial).
-URL_OPTIONS = {"board_id": int, "baudrate": int, "timeout_s": float, "retries": int,
-               "open_timeout_s": float, "reconnect_timeout_s": float}
+URL_OPTIONS = {
+    "board_id": int,
+    "baudrate": int,
+    "timeout_s": float,
+    "retries": int,
+    "open_timeout_s": float,
+    "reconnect_timeout_s": float,
+}
 #: Longest single blocking read [s]; reads return early as soon as bytes arrive.
 _POLL_S = 0.02
 #: Pause between two attempts to re-open a vanished port [s].
@@ -124,8 +130,9 @@ PortFactory = Callable[[str, int, float], SerialPort]
 
 def open_pyserial_port(url: str, baudrate: int, poll_s: float) -> SerialPort:
     """Open ``url`` with :func:`serial.serial_for_url` (8N1, reads time out after ``poll_s``)."""
-    port: SerialPort = serial.serial_for_url(url, baudrate=baudrate, timeout=poll_s,
-                                             write_timeout=1.0)
+    port: SerialPort = serial.serial_for_url(
+        url, baudrate=baudrate, timeout=poll_s, write_timeout=1.0
+    )
     return port
 
 
@@ -201,15 +208,18 @@ class SerialBoard(Board):
             if url_options:
                 raise LinkUrlError(
                     f"serial board {url!r}: URL options {sorted(url_options)} are read by "
-                    "board_from_url(); pass them as keyword arguments to SerialBoard")
+                    "board_from_url(); pass them as keyword arguments to SerialBoard"
+                )
         if board_id is not None and not 0 <= board_id <= 0xFFFF:
             raise LinkUrlError(f"serial board {url!r}: board_id must be 0-65535, got {board_id}")
         for name, value in (("timeout_s", timeout_s), ("open_timeout_s", open_timeout_s)):
             if not value > 0:
                 raise LinkUrlError(f"serial board {url!r}: {name} must be > 0 [s], got {value}")
         if retries < 0 or reconnect_timeout_s < 0:
-            raise LinkUrlError(f"serial board {url!r}: retries and reconnect_timeout_s must be "
-                               f">= 0, got {retries}, {reconnect_timeout_s}")
+            raise LinkUrlError(
+                f"serial board {url!r}: retries and reconnect_timeout_s must be "
+                f">= 0, got {retries}, {reconnect_timeout_s}"
+            )
         self.url = url
         self.port_url = port_url
         self.baudrate = baudrate
@@ -254,8 +264,11 @@ class SerialBoard(Board):
             self._port = self._port_factory(self.port_url, self.baudrate, self._poll_s)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise BoardConnectionError(f"cannot open serial link {self.url!r}: {exc}") from exc
-        self._fd = self._port.fileno() if _PosixSerial is not None and isinstance(
-            self._port, _PosixSerial) else None
+        self._fd = (
+            self._port.fileno()
+            if _PosixSerial is not None and isinstance(self._port, _PosixSerial)
+            else None
+        )
         self._decoder.reset()
         self._inbox.clear()
 
@@ -312,8 +325,9 @@ class SerialBoard(Board):
         except BlockingIOError:
             return b""
         if not data:  # as pyserial: readable but empty means the device went away
-            raise serial.SerialException("device reports readiness to read but returned no "
-                                         "data (device disconnected?)")
+            raise serial.SerialException(
+                "device reports readiness to read but returned no data (device disconnected?)"
+            )
         return data
 
     # ------------------------------------------------------------------ one request
@@ -332,16 +346,21 @@ class SerialBoard(Board):
                     reply = parse_payload(payload)
                 except (WireFormatError, TypeError) as exc:
                     self.stats.malformed_replies += 1
-                    _log.warning("%s: malformed reply %s dropped: %s", self.url, payload.hex(),
-                                 exc)
+                    _log.warning("%s: malformed reply %s dropped: %s", self.url, payload.hex(), exc)
                     continue
                 # FRAME_TOO_LONG (seq 0) can only answer a frame this host never sent.
                 too_long = isinstance(reply, ErrorMsg) and reply.code == ErrorCode.FRAME_TOO_LONG
-                if reply.seq != seq or too_long or (reply.msg_type != reply_type
-                                                    and not isinstance(reply, ErrorMsg)):
+                if (
+                    reply.seq != seq
+                    or too_long
+                    or (reply.msg_type != reply_type and not isinstance(reply, ErrorMsg))
+                ):
                     self.stats.stale_replies += 1
-                    self._event("stale_reply", f"discarded {reply.msg_type.name} seq "
-                                f"{reply.seq} while waiting for seq {seq}")
+                    self._event(
+                        "stale_reply",
+                        f"discarded {reply.msg_type.name} seq "
+                        f"{reply.seq} while waiting for seq {seq}",
+                    )
                     continue
                 return reply
         return None
@@ -354,15 +373,19 @@ class SerialBoard(Board):
         for attempt in range(self.retries + 1):
             if attempt:
                 self.stats.retries += 1
-                self._event("retry", f"no reply to type {payload[0]:#04x} seq {seq} within "
-                            f"{self.timeout_s} s; re-sending (attempt {attempt + 1})")
+                self._event(
+                    "retry",
+                    f"no reply to type {payload[0]:#04x} seq {seq} within "
+                    f"{self.timeout_s} s; re-sending (attempt {attempt + 1})",
+                )
             self._write(frame)
             reply = self._await_reply(seq, reply_type, self._clock() + self.timeout_s)
             if reply is not None:
                 return reply
         raise BoardTimeoutError(
             f"{self.url}: no reply to request type {payload[0]:#04x} seq {seq} after "
-            f"{self.retries + 1} attempts of {self.timeout_s} s")
+            f"{self.retries + 1} attempts of {self.timeout_s} s"
+        )
 
     def _transact(self, payload: bytes) -> Message:
         """Like :meth:`_transact_once`, reconnecting (and retrying once) if the port fails."""
@@ -376,7 +399,8 @@ class SerialBoard(Board):
                 reply = self._transact_once(payload)
             except _PortLostError as again:
                 raise BoardConnectionError(
-                    f"{self.url}: link lost again right after reconnecting: {again}") from again
+                    f"{self.url}: link lost again right after reconnecting: {again}"
+                ) from again
         if isinstance(reply, ErrorMsg):
             raise self._request_error(reply, payload[0])
         return reply
@@ -386,13 +410,19 @@ class SerialBoard(Board):
             code_name = ErrorCode(reply.code).name
         except ValueError:
             code_name = f"code {reply.code}"
-        pin_codes = (ErrorCode.BAD_PIN, ErrorCode.BAD_MODE, ErrorCode.PIN_CONFLICT,
-                     ErrorCode.BAD_VALUE)
+        pin_codes = (
+            ErrorCode.BAD_PIN,
+            ErrorCode.BAD_MODE,
+            ErrorCode.PIN_CONFLICT,
+            ErrorCode.BAD_VALUE,
+        )
         pin = reply.detail if reply.code in pin_codes else None
         where = f" on pin {pin_name(pin)}" if pin is not None else f" (detail {reply.detail})"
         return BoardRequestError(
             f"{self.url}: board refused request type {request_type:#04x}: {code_name}{where}",
-            code=reply.code, pin=pin)
+            code=reply.code,
+            pin=pin,
+        )
 
     # ------------------------------------------------------------------ handshake / reconnection
     def _handshake(self, deadline: float) -> BoardInfo:
@@ -411,15 +441,21 @@ class SerialBoard(Board):
         if reply.protocol_version != PROTOCOL_VERSION:
             raise ProtocolError(
                 f"{self.url}: board speaks protocol version {reply.protocol_version}, this host "
-                f"speaks version {PROTOCOL_VERSION} (update the firmware or hilswarm)")
+                f"speaks version {PROTOCOL_VERSION} (update the firmware or hilswarm)"
+            )
         if self.expected_board_id is not None and reply.board_id != self.expected_board_id:
             raise ProtocolError(
                 f"{self.url}: expected board id {self.expected_board_id}, the board reports id "
-                f"{reply.board_id} (wrong port, or set the id with SET_ID)")
+                f"{reply.board_id} (wrong port, or set the id with SET_ID)"
+            )
         self.last_status = BoardStatus(reply.status)
         self._last_time_us = None
-        return BoardInfo(reply.protocol_version, (reply.fw_major, reply.fw_minor),
-                         reply.board_id, tuple(Capability(c) for c in reply.capabilities))
+        return BoardInfo(
+            reply.protocol_version,
+            (reply.fw_major, reply.fw_minor),
+            reply.board_id,
+            tuple(Capability(c) for c in reply.capabilities),
+        )
 
     def _reconnect(self, cause: str) -> None:
         self._close_port()
@@ -442,11 +478,15 @@ class SerialBoard(Board):
             if self._clock() >= deadline:
                 raise BoardConnectionError(
                     f"{self.url}: link lost ({cause}) and not re-established within "
-                    f"{self.reconnect_timeout_s} s after {attempts} attempts: {last_error}")
+                    f"{self.reconnect_timeout_s} s after {attempts} attempts: {last_error}"
+                )
             time.sleep(_REOPEN_PAUSE_S)  # back-off while the device is away
         self.stats.reconnections += 1
-        self._event("reconnected", f"after {attempts} attempt(s); configuration "
-                    f"{'re-applied' if self._config else 'none to re-apply'}")
+        self._event(
+            "reconnected",
+            f"after {attempts} attempt(s); configuration "
+            f"{'re-applied' if self._config else 'none to re-apply'}",
+        )
 
     def _reapply_config(self) -> None:
         if self._config is None:
@@ -476,9 +516,12 @@ class SerialBoard(Board):
             self._close_port()
             raise
         info = self._info
-        self._event("opened", f"protocol {info.protocol_version}, firmware "
-                    f"{info.firmware_version[0]}.{info.firmware_version[1]}, board id "
-                    f"{info.board_id}, status {self.last_status!r}")
+        self._event(
+            "opened",
+            f"protocol {info.protocol_version}, firmware "
+            f"{info.firmware_version[0]}.{info.firmware_version[1]}, board id "
+            f"{info.board_id}, status {self.last_status!r}",
+        )
         return info
 
     @property
@@ -498,8 +541,9 @@ class SerialBoard(Board):
         try:
             return encode_payload(ConfigMsg(self._next_seq(), watchdog_ms, entries))
         except WireFormatError as exc:
-            raise BoardRequestError(f"{self.url}: CONFIG cannot be encoded: {exc}",
-                                    code=exc.code, pin=None) from exc
+            raise BoardRequestError(
+                f"{self.url}: CONFIG cannot be encoded: {exc}", code=exc.code, pin=None
+            ) from exc
 
     def configure(self, pins: Sequence[PinConfig], *, watchdog_s: float) -> None:
         """Send CONFIG (whole configuration + link watchdog [s], 0 = off) and remember it.
@@ -511,7 +555,9 @@ class SerialBoard(Board):
         if not 0 <= watchdog_ms <= 0xFFFF:
             raise BoardRequestError(
                 f"{self.url}: watchdog_s = {watchdog_s} s is outside 0-65.535 s",
-                code=ErrorCode.BAD_VALUE, pin=None)
+                code=ErrorCode.BAD_VALUE,
+                pin=None,
+            )
         pins = tuple(pins)
         reply = self._transact(self._config_payload(pins, watchdog_ms))
         if not isinstance(reply, ConfigReplyMsg):
@@ -519,12 +565,12 @@ class SerialBoard(Board):
         self.last_status = BoardStatus(reply.status)
         self._config = (pins, watchdog_ms)
         self._modes = {p.pin: PinMode(p.mode) for p in pins}
-        self._dout_word = sum(p.safe_value << p.pin for p in pins
-                              if p.mode == PinMode.DIGITAL_OUT)
+        self._dout_word = sum(p.safe_value << p.pin for p in pins if p.mode == PinMode.DIGITAL_OUT)
         self._tick_layouts.clear()
 
-    def _tick_payload(self, writes: Mapping[int, int],
-                      reads: Sequence[int]) -> tuple[bytes, tuple[int, ...]]:
+    def _tick_payload(
+        self, writes: Mapping[int, int], reads: Sequence[int]
+    ) -> tuple[bytes, tuple[int, ...]]:
         """TICK payload and the pins its reply samples (ascending): the cached layout's way."""
         key = (tuple(writes), tuple(reads))
         layout = self._tick_layouts.get(key, False)
@@ -559,14 +605,18 @@ class SerialBoard(Board):
                 if value not in (0, 1):
                     raise BoardRequestError(
                         f"{self.url}: digital output {pin_name(pin)} takes 0 or 1, got {value}",
-                        code=ErrorCode.BAD_VALUE, pin=pin)
+                        code=ErrorCode.BAD_VALUE,
+                        pin=pin,
+                    )
                 dout |= value << pin
             elif mode in (PinMode.PWM, PinMode.SERVO):
                 wide.append(PinWrite(pin, value, mode))
             else:
                 raise BoardRequestError(
                     f"{self.url}: write to pin {pin} ({mode.name}), which is not an output",
-                    code=ErrorCode.BAD_PIN, pin=pin)
+                    code=ErrorCode.BAD_PIN,
+                    pin=pin,
+                )
         # Every DIGITAL_OUT pin's level travels in each TICK: unwritten ones keep their level.
         for pin, mode in self._modes.items():
             if mode == PinMode.DIGITAL_OUT and pin not in writes:
@@ -574,14 +624,16 @@ class SerialBoard(Board):
         rmask = 0
         for pin in reads:
             if not 0 <= pin < 24:
-                raise BoardRequestError(f"{self.url}: cannot sample pin {pin}",
-                                        code=ErrorCode.BAD_PIN, pin=pin)
+                raise BoardRequestError(
+                    f"{self.url}: cannot sample pin {pin}", code=ErrorCode.BAD_PIN, pin=pin
+                )
             rmask |= 1 << pin
         try:
             payload = encode_payload(TickMsg(self._next_seq(), dout, rmask, tuple(wide)))
         except WireFormatError as exc:
-            raise BoardRequestError(f"{self.url}: TICK cannot be encoded: {exc}",
-                                    code=exc.code, pin=exc.detail) from exc
+            raise BoardRequestError(
+                f"{self.url}: TICK cannot be encoded: {exc}", code=exc.code, pin=exc.detail
+            ) from exc
         self._dout_word = dout
         return payload
 
@@ -597,19 +649,28 @@ class SerialBoard(Board):
         except BoardRequestError as exc:
             if exc.code != ErrorCode.NOT_CONFIGURED or self._config is None:
                 raise
-            self._event("board_reset", "TICK refused with NOT_CONFIGURED: the board rebooted; "
-                        "handshaking and re-applying the configuration")
+            self._event(
+                "board_reset",
+                "TICK refused with NOT_CONFIGURED: the board rebooted; "
+                "handshaking and re-applying the configuration",
+            )
             self._recover_from_reset()
             reply = self._transact(payload)
         if not isinstance(reply, TickReplyMsg):
             raise ProtocolError(f"{self.url}: TICK answered with {reply!r}")
         if len(reply.samples) != len(expected):
-            raise ProtocolError(f"{self.url}: TICK reply carries {len(reply.samples)} samples, "
-                                f"{len(expected)} were requested")
+            raise ProtocolError(
+                f"{self.url}: TICK reply carries {len(reply.samples)} samples, "
+                f"{len(expected)} were requested"
+            )
         status = self._status(reply.status)
         self._note_status(status)
-        return TickReply(reply.seq, status, self._board_time_s(reply.board_time_us, status),
-                         dict(zip(expected, reply.samples, strict=True)))
+        return TickReply(
+            reply.seq,
+            status,
+            self._board_time_s(reply.board_time_us, status),
+            dict(zip(expected, reply.samples, strict=True)),
+        )
 
     def _status(self, flags: int) -> BoardStatus:
         """``BoardStatus(flags)``, cached (building an IntFlag costs more than the rest of a
@@ -663,8 +724,9 @@ class SerialBoard(Board):
         try:
             payload = encode_payload(SetIdMsg(self._next_seq(), board_id))
         except WireFormatError as exc:
-            raise BoardRequestError(f"{self.url}: board id {board_id} is not 0-65535",
-                                    code=ErrorCode.BAD_VALUE) from exc
+            raise BoardRequestError(
+                f"{self.url}: board id {board_id} is not 0-65535", code=ErrorCode.BAD_VALUE
+            ) from exc
         reply = self._transact(payload)
         if not isinstance(reply, SetIdReplyMsg):
             raise ProtocolError(f"{self.url}: SET_ID answered with {reply!r}")
@@ -716,8 +778,9 @@ def split_url_options(url: str) -> tuple[str, dict[str, Any]]:
             try:
                 options[key] = URL_OPTIONS[key](value)
             except ValueError:
-                raise LinkUrlError(f"link URL {url!r}: option {key}={value!r} is not a "
-                                   f"{URL_OPTIONS[key].__name__}") from None
+                raise LinkUrlError(
+                    f"link URL {url!r}: option {key}={value!r} is not a {URL_OPTIONS[key].__name__}"
+                ) from None
         else:
             rest.append((key, value))
     return (f"{base}?{urlencode(rest)}" if rest else base), options
@@ -734,6 +797,7 @@ def board_from_url(url: str, **options: Any) -> SerialBoard:
     port_url, from_url = split_url_options(url)
     clash = sorted(set(from_url) & set(options))
     if clash:
-        raise LinkUrlError(f"link URL {url!r}: {', '.join(clash)} given both in the URL and as "
-                           "keyword options")
+        raise LinkUrlError(
+            f"link URL {url!r}: {', '.join(clash)} given both in the URL and as keyword options"
+        )
     return SerialBoard(url, port_url=port_url, **from_url, **options)

@@ -112,8 +112,10 @@ def locate_build(profile: str = "uno") -> tuple[Path, Path]:
             file and the command that builds it).
     """
     if profile not in SIMAVR_PROFILES:
-        raise SimulatorError(f"simavr: unknown board profile {profile!r}; known: "
-                             f"{', '.join(sorted(SIMAVR_PROFILES))}")
+        raise SimulatorError(
+            f"simavr: unknown board profile {profile!r}; known: "
+            f"{', '.join(sorted(SIMAVR_PROFILES))}"
+        )
     root = firmware_dir()
     harness = root / HARNESS_RELPATH
     elf = root / "build" / SIMAVR_PROFILES[profile].build / "hilswarm.elf"
@@ -123,7 +125,8 @@ def locate_build(profile: str = "uno") -> tuple[Path, Path]:
             raise SimulatorError(
                 f"simavr: {path} is not built; run `make -C {root} all{target}` (needs gcc-avr, "
                 f"avr-libc, arduino-core-avr and libsimavr-dev; set ${FIRMWARE_DIR_ENV} to use "
-                "another firmware folder)")
+                "another firmware folder)"
+            )
     return harness, elf
 
 
@@ -147,14 +150,25 @@ class SimavrHarness:
     def start(self) -> str:
         """Start the process (own process group); return the pty path it bridges the UART to."""
         sim = SIMAVR_PROFILES[self.profile]
-        command = [str(self.harness_path), "--elf", str(self.elf_path), "--freq",
-                   str(sim.freq_hz), "--vcc-mv", str(sim.vcc_mv),
-                   "--paced" if self.paced else "--unpaced"]
+        command = [
+            str(self.harness_path),
+            "--elf",
+            str(self.elf_path),
+            "--freq",
+            str(sim.freq_hz),
+            "--vcc-mv",
+            str(sim.vcc_mv),
+            "--paced" if self.paced else "--unpaced",
+        ]
         self._stderr_file = tempfile.TemporaryFile()  # noqa: SIM115 - closed in stop()
         try:
             self.process = subprocess.Popen(
-                command, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                stderr=self._stderr_file, start_new_session=True)
+                command,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=self._stderr_file,
+                start_new_session=True,
+            )
         except OSError as exc:
             raise SimulatorError(f"simavr: cannot start {command[0]}: {exc}") from exc
         try:
@@ -166,8 +180,13 @@ class SimavrHarness:
             self.stop()
             raise SimulatorError(f"simavr: harness printed {line!r}, expected 'PTY <path>'")
         self.pty_path = line[4:].strip()
-        _log.info("simavr harness pid %d runs %s on %s (%s)", self.process.pid, self.elf_path,
-                  self.pty_path, "paced" if self.paced else "unpaced")
+        _log.info(
+            "simavr harness pid %d runs %s on %s (%s)",
+            self.process.pid,
+            self.elf_path,
+            self.pty_path,
+            "paced" if self.paced else "unpaced",
+        )
         return self.pty_path
 
     def stderr_tail(self, limit: int = 2000) -> str:
@@ -188,16 +207,19 @@ class SimavrHarness:
         while b"\n" not in self._stdout_buffer:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                raise SimulatorError(f"simavr: no answer from the harness within {timeout_s} s; "
-                                     f"stderr: {self.stderr_tail()}")
+                raise SimulatorError(
+                    f"simavr: no answer from the harness within {timeout_s} s; "
+                    f"stderr: {self.stderr_tail()}"
+                )
             ready, _, _ = select.select([fd], [], [], remaining)
             if not ready:
                 continue
             chunk = os.read(fd, 4096)
             if not chunk:
                 code = process.poll()
-                raise SimulatorError(f"simavr: harness exited (status {code}); stderr: "
-                                     f"{self.stderr_tail()}")
+                raise SimulatorError(
+                    f"simavr: harness exited (status {code}); stderr: {self.stderr_tail()}"
+                )
             self._stdout_buffer += chunk
         line, _, rest = bytes(self._stdout_buffer).partition(b"\n")
         self._stdout_buffer = bytearray(rest)
@@ -207,8 +229,9 @@ class SimavrHarness:
         """Send one control command; return its reply line (raises on ``err ...``)."""
         process = self.process
         if process is None or process.stdin is None or process.poll() is not None:
-            raise SimulatorError(f"simavr: harness is not running (command {line!r}); stderr: "
-                                 f"{self.stderr_tail()}")
+            raise SimulatorError(
+                f"simavr: harness is not running (command {line!r}); stderr: {self.stderr_tail()}"
+            )
         try:
             process.stdin.write(line.encode() + b"\n")
             process.stdin.flush()
@@ -298,9 +321,16 @@ class SimavrBoard(Board):
             ``retries``, ``on_event``...).
     """
 
-    def __init__(self, profile: str = "uno", *, plant: PinPlant | None = None,
-                 dt: float | None = None, paced: bool = False, url: str = "simavr://uno",
-                 **serial_options: Any) -> None:
+    def __init__(
+        self,
+        profile: str = "uno",
+        *,
+        plant: PinPlant | None = None,
+        dt: float | None = None,
+        paced: bool = False,
+        url: str = "simavr://uno",
+        **serial_options: Any,
+    ) -> None:
         if dt is not None and not dt > 0:
             raise LinkUrlError(f"{url!r}: dt must be > 0 [s], got {dt!r}")
         if plant is not None and not callable(getattr(plant, "advance", None)):
@@ -357,8 +387,12 @@ class SimavrBoard(Board):
         first = serial.exchange(writes, [])
         self._step_plant()
         second = serial.exchange({}, reads)
-        return TickReply(second.seq, BoardStatus(first.status | second.status),
-                         second.board_time_s, second.samples)
+        return TickReply(
+            second.seq,
+            BoardStatus(first.status | second.status),
+            second.board_time_s,
+            second.samples,
+        )
 
     def _step_plant(self) -> None:
         if self.plant is None:
@@ -435,8 +469,10 @@ def board_from_url(url: str, **options: Any) -> SimavrBoard:
         raise LinkUrlError(f"{url!r} is not a simavr:// URL")
     profile = (parts.netloc or parts.path.strip("/") or "uno").lower()
     if profile not in SIMAVR_PROFILES:
-        raise LinkUrlError(f"{url!r}: unknown board profile {profile!r}; known: "
-                           f"{', '.join(sorted(SIMAVR_PROFILES))}")
+        raise LinkUrlError(
+            f"{url!r}: unknown board profile {profile!r}; known: "
+            f"{', '.join(sorted(SIMAVR_PROFILES))}"
+        )
     for key, value in parse_qsl(parts.query, keep_blank_values=True):
         if key in options:
             raise LinkUrlError(f"{url!r}: {key} given both in the URL and as an option")

@@ -237,9 +237,11 @@ class WireServer:
             if hasattr(self.board, "board_id"):
                 self.board.board_id = msg.board_id  # type: ignore[attr-defined]
             return SetIdReplyMsg(msg.seq, msg.board_id)
-        raise WireFormatError(f"{msg.msg_type.name} is not a request",
-                              code=ErrorCode.UNKNOWN_TYPE,
-                              detail=int(msg.msg_type))
+        raise WireFormatError(
+            f"{msg.msg_type.name} is not a request",
+            code=ErrorCode.UNKNOWN_TYPE,
+            detail=int(msg.msg_type),
+        )
 
     def _hello(self, msg: HelloMsg) -> HelloReplyMsg:
         before = self._board_flags() & (BoardStatus.RESET | BoardStatus.HW_WATCHDOG_RESET)
@@ -248,9 +250,15 @@ class WireServer:
         status = self._status(before)
         self._reset = False
         board_id = self._board_id if self._board_id is not None else info.board_id
-        return HelloReplyMsg(msg.seq, info.protocol_version, info.firmware_version[0],
-                             info.firmware_version[1], board_id, status,
-                             tuple(int(c) for c in info.capabilities))
+        return HelloReplyMsg(
+            msg.seq,
+            info.protocol_version,
+            info.firmware_version[0],
+            info.firmware_version[1],
+            board_id,
+            status,
+            tuple(int(c) for c in info.capabilities),
+        )
 
     def _config(self, msg: ConfigMsg) -> ConfigReplyMsg:
         info = self._info if self._info is not None else self.board.open()
@@ -265,20 +273,23 @@ class WireServer:
             modes[e.pin] = e.mode
         self._modes = modes
         self._estopped = False
-        return ConfigReplyMsg(msg.seq, self._status(events | self._board_flags()),
-                              len(msg.entries))
+        return ConfigReplyMsg(msg.seq, self._status(events | self._board_flags()), len(msg.entries))
 
     def _tick(self, msg: TickMsg) -> TickReplyMsg:
         modes = self._modes
         if modes is None:
             raise BoardRequestError("TICK before any CONFIG", code=ErrorCode.NOT_CONFIGURED)
         check_tick(msg, modes)
-        writes = {pin: msg.dout >> pin & 1 for pin in range(PIN_COUNT)
-                  if modes[pin] == PinMode.DIGITAL_OUT}
+        writes = {
+            pin: msg.dout >> pin & 1
+            for pin in range(PIN_COUNT)
+            if modes[pin] == PinMode.DIGITAL_OUT
+        }
         for w in msg.writes:
             if self.strict and w.pin in writes:
-                raise WireFormatError(f"TICK writes pin {w.pin} twice", code=ErrorCode.BAD_PIN,
-                                      detail=w.pin)
+                raise WireFormatError(
+                    f"TICK writes pin {w.pin} twice", code=ErrorCode.BAD_PIN, detail=w.pin
+                )
             writes[w.pin] = w.value
         reads = pins_of_mask(msg.rmask)
         reply = self.board.exchange(writes, reads)
@@ -308,8 +319,9 @@ class _ThreadedServer:
 
     def _start_thread(self, body: Callable[[], None], name: str) -> None:
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run_safely, args=(body,), name=name,
-                                        daemon=True)
+        self._thread = threading.Thread(
+            target=self._run_safely, args=(body,), name=name, daemon=True
+        )
         self._thread.start()
 
     def _join(self) -> None:

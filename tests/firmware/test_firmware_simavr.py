@@ -38,8 +38,28 @@ from hilswarm.agents.link.simavr import SimavrBoard, SimavrHarness, firmware_dir
 
 pytestmark = pytest.mark.firmware
 
-UNO_CAPS = (0x80, 0x80, 0x03, 0x07, 0x03, 0x07, 0x07, 0x03, 0x03, 0x0F, 0x0F, 0x07, 0x03,
-            0x03, 0x13, 0x13, 0x13, 0x13, 0x13, 0x13)
+UNO_CAPS = (
+    0x80,
+    0x80,
+    0x03,
+    0x07,
+    0x03,
+    0x07,
+    0x07,
+    0x03,
+    0x03,
+    0x0F,
+    0x0F,
+    0x07,
+    0x03,
+    0x03,
+    0x13,
+    0x13,
+    0x13,
+    0x13,
+    0x13,
+    0x13,
+)
 BLIMP = [
     *(PinConfig(p, PinMode.DIGITAL_OUT, 0) for p in (2, 4, 7, 8, 12)),
     PinConfig(13, PinMode.DIGITAL_OUT, 1),
@@ -56,8 +76,10 @@ SAFE_OUTPUTS = {2: 0, 4: 0, 7: 0, 8: 0, 12: 0, 13: 1, 5: 0, 6: 0, 9: 1500}
 def _toolchain_missing() -> str | None:
     if shutil.which("avr-gcc") is None:
         return "avr-gcc not installed (apt install gcc-avr avr-libc arduino-core-avr)"
-    if not any(Path(p).exists() for p in ("/usr/include/simavr/sim_avr.h",
-                                          "/usr/local/include/simavr/sim_avr.h")):
+    if not any(
+        Path(p).exists()
+        for p in ("/usr/include/simavr/sim_avr.h", "/usr/local/include/simavr/sim_avr.h")
+    ):
         return "libsimavr headers not installed (apt install libsimavr-dev)"
     return None
 
@@ -71,8 +93,13 @@ def firmware_built() -> Path:
     harness = root / "build" / "hilswarm-simavr"
     elf = root / "build" / "uno" / "hilswarm.elf"
     if not (harness.is_file() and elf.is_file()):
-        result = subprocess.run(["make", "-s", "-C", str(root), "all"], capture_output=True,
-                                text=True, timeout=900, check=False)
+        result = subprocess.run(
+            ["make", "-s", "-C", str(root), "all"],
+            capture_output=True,
+            text=True,
+            timeout=900,
+            check=False,
+        )
         assert result.returncode == 0, f"make -C firmware all failed:\n{result.stderr[-3000:]}"
     return root
 
@@ -173,15 +200,22 @@ def test_config_tick_writes_reads_and_pins(board: SimavrBoard) -> None:
         ([PinConfig(20, PinMode.DIGITAL_OUT)], ErrorCode.BAD_PIN, 20),
         ([PinConfig(4, PinMode.PWM)], ErrorCode.BAD_MODE, 4),
         ([PinConfig(13, PinMode.ANALOG_IN)], ErrorCode.BAD_MODE, 13),
-        ([PinConfig(9, PinMode.SERVO, 1500), PinConfig(10, PinMode.PWM)],
-         ErrorCode.PIN_CONFLICT, 10),
-        ([PinConfig(10, PinMode.SERVO, 1500), PinConfig(9, PinMode.PWM)],
-         ErrorCode.PIN_CONFLICT, 9),
+        (
+            [PinConfig(9, PinMode.SERVO, 1500), PinConfig(10, PinMode.PWM)],
+            ErrorCode.PIN_CONFLICT,
+            10,
+        ),
+        (
+            [PinConfig(10, PinMode.SERVO, 1500), PinConfig(9, PinMode.PWM)],
+            ErrorCode.PIN_CONFLICT,
+            9,
+        ),
         ([PinConfig(9, PinMode.SERVO, 3000)], ErrorCode.BAD_VALUE, 9),
     ],
 )
-def test_bad_config_gets_error_frame(board: SimavrBoard, pins: list[PinConfig],
-                                     code: ErrorCode, pin: int) -> None:
+def test_bad_config_gets_error_frame(
+    board: SimavrBoard, pins: list[PinConfig], code: ErrorCode, pin: int
+) -> None:
     with pytest.raises(BoardRequestError, match=code.name) as info:
         board.configure(pins, watchdog_s=0)
     assert (info.value.code, info.value.pin) == (code, pin)

@@ -42,21 +42,28 @@ pytestmark = pytest.mark.firmware
 BYTE_US = 10 / 115200 * 1e6
 #: The thesis Blimpduino-like pin set: 6 digital outputs, 2 PWM, 1 servo, 1 analog input.
 DOUT = (2, 4, 7, 8, 12, 13)
-CONFIG = ConfigMsg(1, 0, (
-    *(ConfigEntry(p, PinMode.DIGITAL_OUT) for p in DOUT),
-    ConfigEntry(5, PinMode.PWM),
-    ConfigEntry(6, PinMode.PWM),
-    ConfigEntry(9, PinMode.SERVO, 1500),
-    ConfigEntry(14, PinMode.ANALOG_IN),
-))
+CONFIG = ConfigMsg(
+    1,
+    0,
+    (
+        *(ConfigEntry(p, PinMode.DIGITAL_OUT) for p in DOUT),
+        ConfigEntry(5, PinMode.PWM),
+        ConfigEntry(6, PinMode.PWM),
+        ConfigEntry(9, PinMode.SERVO, 1500),
+        ConfigEntry(14, PinMode.ANALOG_IN),
+    ),
+)
 #: Seconds a test waits for replies (wall clock; generous: the machine may be busy).
 REPLY_TIMEOUT_S = 10.0
 
 
 def tick(seq: int) -> bytes:
     """Wire frame of a Blimpduino-like TICK: 19 bytes, answered by a 13-byte reply."""
-    writes = (PinWrite(5, (seq * 7) % 256, PinMode.PWM), PinWrite(6, 40, PinMode.PWM),
-              PinWrite(9, 1000 + (seq * 11) % 1000, PinMode.SERVO))
+    writes = (
+        PinWrite(5, (seq * 7) % 256, PinMode.PWM),
+        PinWrite(6, 40, PinMode.PWM),
+        PinWrite(9, 1000 + (seq * 11) % 1000, PinMode.SERVO),
+    )
     dout = sum(1 << p for i, p in enumerate(DOUT) if (seq + i) % 2)
     return encode_message(TickMsg(seq, dout, 1 << 14, writes))
 
@@ -65,21 +72,31 @@ def tick(seq: int) -> bytes:
 def built() -> Path:
     if shutil.which("avr-gcc") is None:
         pytest.skip("avr-gcc not installed (apt install gcc-avr avr-libc arduino-core-avr)")
-    if not any(Path(p).exists() for p in ("/usr/include/simavr/sim_avr.h",
-                                          "/usr/local/include/simavr/sim_avr.h")):
+    if not any(
+        Path(p).exists()
+        for p in ("/usr/include/simavr/sim_avr.h", "/usr/local/include/simavr/sim_avr.h")
+    ):
         pytest.skip("libsimavr headers not installed (apt install libsimavr-dev)")
     root = firmware_dir()
-    if not ((root / "build" / "hilswarm-simavr").is_file()
-            and (root / "build" / "uno" / "hilswarm.elf").is_file()):
-        result = subprocess.run(["make", "-s", "-C", str(root), "all"], capture_output=True,
-                                text=True, timeout=900, check=False)
+    if not (
+        (root / "build" / "hilswarm-simavr").is_file()
+        and (root / "build" / "uno" / "hilswarm.elf").is_file()
+    ):
+        result = subprocess.run(
+            ["make", "-s", "-C", str(root), "all"],
+            capture_output=True,
+            text=True,
+            timeout=900,
+            check=False,
+        )
         assert result.returncode == 0, f"make -C firmware all failed:\n{result.stderr[-3000:]}"
     return root
 
 
 @pytest.fixture(params=[False, True], ids=["unpaced", "paced"])
-def link(built: Path,
-         request: pytest.FixtureRequest) -> Iterator[tuple[SimavrHarness, serial.Serial]]:
+def link(
+    built: Path, request: pytest.FixtureRequest
+) -> Iterator[tuple[SimavrHarness, serial.Serial]]:
     """A running harness and its pty, the Blimpduino-like pins configured."""
     harness = SimavrHarness("uno", paced=request.param)
     port = None
@@ -108,8 +125,7 @@ def read_replies(port: serial.Serial, frames: bytes, count: int) -> list[Message
     return replies
 
 
-def test_a_tick_takes_at_least_its_wire_time(
-        link: tuple[SimavrHarness, serial.Serial]) -> None:
+def test_a_tick_takes_at_least_its_wire_time(link: tuple[SimavrHarness, serial.Serial]) -> None:
     harness, port = link
     request = tick(2)
     assert len(request) == 19
@@ -137,15 +153,17 @@ def test_a_tick_takes_at_least_its_wire_time(
 
 
 def test_a_burst_beyond_the_uart_fifo_arrives_whole_at_wire_speed(
-        link: tuple[SimavrHarness, serial.Serial]) -> None:
+    link: tuple[SimavrHarness, serial.Serial],
+) -> None:
     harness, port = link
     burst = [tick(seq) for seq in range(10, 22)]  # 12 x 19 = 228 bytes, more than any FIFO
     start_us = harness.state()["t_us"]
     replies = read_replies(port, b"".join(burst), len(burst))
     end_us = harness.state()["t_us"]
     assert [r.seq for r in replies] == list(range(10, 22))
-    assert all(isinstance(r, TickReplyMsg) and r.status == BoardStatus.OK for r in replies), \
-        replies  # no RX_ERRORS: not a byte lost or damaged
+    assert all(isinstance(r, TickReplyMsg) and r.status == BoardStatus.OK for r in replies), (
+        replies
+    )  # no RX_ERRORS: not a byte lost or damaged
     assert end_us - start_us >= (sum(map(len, burst)) + 13) * BYTE_US
     # The firmware's own clock: a request is handled when its last byte is in, so consecutive
     # requests of 19 bytes are at least 19 byte times apart (one byte time of slack for the

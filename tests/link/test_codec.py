@@ -36,8 +36,28 @@ from hilswarm.agents.link.codec import (
 from hypothesis import given
 from hypothesis import strategies as st
 
-UNO_CAPS = (0x80, 0x80, 0x03, 0x07, 0x03, 0x07, 0x07, 0x03, 0x03, 0x0F, 0x0F, 0x07, 0x03,
-            0x03, 0x13, 0x13, 0x13, 0x13, 0x13, 0x13)
+UNO_CAPS = (
+    0x80,
+    0x80,
+    0x03,
+    0x07,
+    0x03,
+    0x07,
+    0x07,
+    0x03,
+    0x03,
+    0x0F,
+    0x0F,
+    0x07,
+    0x03,
+    0x03,
+    0x13,
+    0x13,
+    0x13,
+    0x13,
+    0x13,
+    0x13,
+)
 
 u8 = st.integers(0, 0xFF)
 u16 = st.integers(0, 0xFFFF)
@@ -60,11 +80,13 @@ def tick_messages(draw: st.DrawFn) -> tuple[TickMsg, list[int]]:
 messages: st.SearchStrategy[Message] = st.one_of(
     st.builds(HelloMsg, u8),
     st.builds(HelloReplyMsg, u8, u8, u8, u8, u16, u8, st.lists(u8, max_size=87).map(tuple)),
-    st.builds(ConfigMsg, u8, u16, st.lists(st.builds(ConfigEntry, u8, u8, u16),
-                                           max_size=23).map(tuple)),
+    st.builds(
+        ConfigMsg, u8, u16, st.lists(st.builds(ConfigEntry, u8, u8, u16), max_size=23).map(tuple)
+    ),
     st.builds(ConfigReplyMsg, u8, u8, u8),
-    st.builds(TickReplyMsg, u8, u8, st.integers(0, 2**32 - 1),
-              st.lists(u16, max_size=44).map(tuple)),
+    st.builds(
+        TickReplyMsg, u8, u8, st.integers(0, 2**32 - 1), st.lists(u16, max_size=44).map(tuple)
+    ),
     st.builds(EstopMsg, u8),
     st.builds(EstopReplyMsg, u8, u8),
     st.builds(SetIdMsg, u8, u16),
@@ -105,8 +127,9 @@ def test_decoder_any_chunking(msgs: list[Message], data: st.DataObject) -> None:
 
 
 @given(messages, st.binary(max_size=300), messages)
-def test_garbage_between_frames_then_next_good_frame(first: Message, garbage: bytes,
-                                                      second: Message) -> None:
+def test_garbage_between_frames_then_next_good_frame(
+    first: Message, garbage: bytes, second: Message
+) -> None:
     # A receiver discards garbage up to the next delimiter, so the frame after it is decoded.
     decoder = FrameDecoder()
     out = decoder.feed(encode_message(first) + garbage + b"\x00" + encode_message(second))
@@ -122,8 +145,9 @@ def test_decoder_never_raises_and_stays_bounded(garbage: bytes) -> None:
 
 
 @given(messages, messages, st.data())
-def test_single_corrupted_byte_is_rejected(msg: Message, after: Message,
-                                          data: st.DataObject) -> None:
+def test_single_corrupted_byte_is_rejected(
+    msg: Message, after: Message, data: st.DataObject
+) -> None:
     wire = bytearray(encode_message(msg))
     index = data.draw(st.integers(0, len(wire) - 2), label="index")  # not the delimiter
     wire[index] ^= data.draw(st.integers(1, 255), label="xor")
@@ -206,8 +230,9 @@ def test_parse_errors(payload: bytes, code: ErrorCode, detail: int) -> None:
         ([(7, PinMode.DIGITAL_OUT, 2)], ErrorCode.BAD_VALUE, 7),
     ],
 )
-def test_check_config_errors(entries: list[tuple[int, int, int]], code: ErrorCode,
-                             detail: int) -> None:
+def test_check_config_errors(
+    entries: list[tuple[int, int, int]], code: ErrorCode, detail: int
+) -> None:
     msg = ConfigMsg(1, 100, tuple(ConfigEntry(p, int(m), s) for p, m, s in entries))
     with pytest.raises(WireFormatError) as info:
         check_config(msg, UNO_CAPS)
@@ -215,19 +240,38 @@ def test_check_config_errors(entries: list[tuple[int, int, int]], code: ErrorCod
 
 
 def test_check_config_accepts_servo_pair_and_blimp() -> None:
-    check_config(ConfigMsg(1, 0, (ConfigEntry(9, PinMode.SERVO, 1500),
-                                  ConfigEntry(10, PinMode.SERVO, 1000))), UNO_CAPS)
-    check_config(ConfigMsg(1, 500, (ConfigEntry(2, PinMode.DIGITAL_OUT, 1),
-                                    ConfigEntry(14, PinMode.ANALOG_IN),
-                                    ConfigEntry(15, PinMode.DIGITAL_OUT))), UNO_CAPS)
+    check_config(
+        ConfigMsg(
+            1, 0, (ConfigEntry(9, PinMode.SERVO, 1500), ConfigEntry(10, PinMode.SERVO, 1000))
+        ),
+        UNO_CAPS,
+    )
+    check_config(
+        ConfigMsg(
+            1,
+            500,
+            (
+                ConfigEntry(2, PinMode.DIGITAL_OUT, 1),
+                ConfigEntry(14, PinMode.ANALOG_IN),
+                ConfigEntry(15, PinMode.DIGITAL_OUT),
+            ),
+        ),
+        UNO_CAPS,
+    )
 
 
 def test_check_tick() -> None:
     modes = [int(PinMode.UNUSED)] * PIN_COUNT
-    modes[2], modes[3], modes[9], modes[14] = (PinMode.DIGITAL_OUT, PinMode.DIGITAL_IN,
-                                               PinMode.SERVO, PinMode.ANALOG_IN)
-    check_tick(TickMsg(1, mask_of_pins([2]), mask_of_pins([3, 14]),
-                       (PinWrite(9, 1500, PinMode.SERVO),)), modes)
+    modes[2], modes[3], modes[9], modes[14] = (
+        PinMode.DIGITAL_OUT,
+        PinMode.DIGITAL_IN,
+        PinMode.SERVO,
+        PinMode.ANALOG_IN,
+    )
+    check_tick(
+        TickMsg(1, mask_of_pins([2]), mask_of_pins([3, 14]), (PinWrite(9, 1500, PinMode.SERVO),)),
+        modes,
+    )
     cases = [
         (TickMsg(1, dout=mask_of_pins([3])), ErrorCode.BAD_PIN, 3),
         (TickMsg(1, dout=1 << 22), ErrorCode.BAD_PIN, 22),

@@ -34,7 +34,8 @@ def modes_for(fields: dict[str, Any]) -> list[int]:
 def test_file_is_generated_from_the_current_codec() -> None:
     generator = runpy.run_path(str(GENERATOR))
     assert VECTORS_PATH.read_text(encoding="utf-8") == generator["render"](), (
-        "golden vectors are stale: run python scripts/make_golden_vectors.py")
+        "golden vectors are stale: run python scripts/make_golden_vectors.py"
+    )
 
 
 def test_document_header() -> None:
@@ -42,8 +43,19 @@ def test_document_header() -> None:
     names = [v["name"] for v in VECTORS]
     assert len(names) == len(set(names))
     types = {v["fields"]["type"] for v in VECTORS if v["valid"]}
-    assert types == {"HELLO", "HELLO_REPLY", "CONFIG", "CONFIG_REPLY", "TICK", "TICK_REPLY",
-                     "ESTOP", "ESTOP_REPLY", "SET_ID", "SET_ID_REPLY", "ERROR"}
+    assert types == {
+        "HELLO",
+        "HELLO_REPLY",
+        "CONFIG",
+        "CONFIG_REPLY",
+        "TICK",
+        "TICK_REPLY",
+        "ESTOP",
+        "ESTOP_REPLY",
+        "SET_ID",
+        "SET_ID_REPLY",
+        "ERROR",
+    }
     assert {v["fields"]["drop_reason"] for v in VECTORS if not v["valid"]} >= {"crc", "too_long"}
 
 
@@ -57,12 +69,12 @@ def test_valid_vector_decodes_and_reencodes(vector: dict[str, Any]) -> None:
     generator = runpy.run_path(str(GENERATOR))
     assert generator["message_fields"](msg) == vector["fields"]
     assert encode_message(msg) == wire
-    assert (vector["direction"] == "board_to_host") == bool(msg.msg_type & 0x80 or
-                                                            msg.msg_type == 0x7F)
+    assert (vector["direction"] == "board_to_host") == bool(
+        msg.msg_type & 0x80 or msg.msg_type == 0x7F
+    )
 
 
-@pytest.mark.parametrize("vector", [v for v in VECTORS if not v["valid"]],
-                         ids=lambda v: v["name"])
+@pytest.mark.parametrize("vector", [v for v in VECTORS if not v["valid"]], ids=lambda v: v["name"])
 def test_invalid_vector_is_dropped_and_counted(vector: dict[str, Any]) -> None:
     reasons: list[DropReason] = []
     decoder = FrameDecoder(on_drop=reasons.append)
@@ -76,13 +88,13 @@ def test_hand_worked_hello() -> None:
     # payload 01 00; CRC-16/CCITT-FALSE(01 00) = 0x2E3E -> bytes 3E 2E (little-endian);
     # COBS of 01 00 3E 2E: block "01" ends at the zero (code 02), block "3E 2E" (code 03).
     vector = next(v for v in VECTORS if v["name"] == "hello")
-    assert vector["wire_hex"] == "02" "01" "03" "3e2e" "00"
+    assert vector["wire_hex"] == "0201033e2e00"
 
 
 def test_hand_worked_blimp_tick_layout() -> None:
     # dout = D2|D7|D13 = 0x2084, rmask = A0 = 1<<14 = 0x004000, then 05 C8, 06 00, 09 DC05.
     vector = next(v for v in VECTORS if v["name"] == "tick_blimp")
-    assert vector["payload_hex"] == "0307" "842000" "004000" "05c8" "0600" "09dc05"
+    assert vector["payload_hex"] == "030784200000400005c8060009dc05"
     assert len(bytes.fromhex(vector["payload_hex"])) + 2 == 17  # docs/protocol.md
     assert len(bytes.fromhex(vector["wire_hex"])) == 19
     reply = next(v for v in VECTORS if v["name"] == "tick_reply_blimp")

@@ -37,8 +37,12 @@ BLIMP_WRITES = {2: 1, 4: 0, 7: 1, 8: 0, 12: 1, 13: 0, 5: 200, 6: 17, 9: 1800}
 
 def fast(url: str, **options: object) -> SerialBoard:
     """A board with short timeouts (loopback answers in well under a millisecond)."""
-    defaults: dict[str, object] = {"timeout_s": 0.2, "retries": 2, "open_timeout_s": 1.0,
-                                   "reconnect_timeout_s": 5.0}
+    defaults: dict[str, object] = {
+        "timeout_s": 0.2,
+        "retries": 2,
+        "open_timeout_s": 1.0,
+        "reconnect_timeout_s": 5.0,
+    }
     return board_from_url(url, **(defaults | options))
 
 
@@ -93,9 +97,13 @@ def test_socket_url_through_board_for_url(socket_server: SocketWireServer) -> No
 
 def test_split_url_options() -> None:
     assert split_url_options("socket://127.0.0.1:5?board_id=3&logging=debug") == (
-        "socket://127.0.0.1:5?logging=debug", {"board_id": 3})
+        "socket://127.0.0.1:5?logging=debug",
+        {"board_id": 3},
+    )
     assert split_url_options("/dev/ttyUSB0?baudrate=57600&timeout_s=0.5") == (
-        "/dev/ttyUSB0", {"baudrate": 57600, "timeout_s": 0.5})
+        "/dev/ttyUSB0",
+        {"baudrate": 57600, "timeout_s": 0.5},
+    )
     with pytest.raises(ValueError, match="board_id='x'"):
         split_url_options("/dev/ttyUSB0?board_id=x")
     with pytest.raises(ValueError, match="board_id"):
@@ -159,7 +167,10 @@ def test_retry_after_corrupted_reply_and_stale_duplicate(pty_server: PtyWireServ
         second = board.exchange(BLIMP_WRITES, [14])
         third = board.exchange(BLIMP_WRITES, [14])  # must skip the stale copy of `second`
         assert [first.seq, second.seq, third.seq] == [
-            first.seq, (first.seq + 1) % 256, (first.seq + 2) % 256]
+            first.seq,
+            (first.seq + 1) % 256,
+            (first.seq + 2) % 256,
+        ]
         assert board.stats.stale_replies == 1
         assert "stale_reply" in [e.kind for e in board.events]
 
@@ -174,7 +185,8 @@ def test_timeout_after_all_retries_then_recovers(pty_server: PtyWireServer) -> N
 
 
 def test_reconnection_after_server_restart_reapplies_config(
-        socket_server: SocketWireServer) -> None:
+    socket_server: SocketWireServer,
+) -> None:
     events: list[LinkEvent] = []
     with fast(socket_server.url, on_event=events.append) as board:
         board.configure(BLIMP, watchdog_s=0.5)
@@ -226,13 +238,17 @@ def test_board_reboot_behind_open_port(pty_server: PtyWireServer, sim: SimBoard)
     [
         ([PinConfig(4, PinMode.PWM)], ErrorCode.BAD_MODE, 4),
         ([PinConfig(0, PinMode.DIGITAL_OUT)], ErrorCode.BAD_PIN, 0),
-        ([PinConfig(9, PinMode.SERVO, 1500), PinConfig(10, PinMode.PWM)],
-         ErrorCode.PIN_CONFLICT, 10),
+        (
+            [PinConfig(9, PinMode.SERVO, 1500), PinConfig(10, PinMode.PWM)],
+            ErrorCode.PIN_CONFLICT,
+            10,
+        ),
         ([PinConfig(9, PinMode.SERVO, 100)], ErrorCode.BAD_VALUE, 9),
     ],
 )
-def test_config_error_frames(pty_server: PtyWireServer, pins: list[PinConfig],
-                             code: ErrorCode, pin: int) -> None:
+def test_config_error_frames(
+    pty_server: PtyWireServer, pins: list[PinConfig], code: ErrorCode, pin: int
+) -> None:
     with fast(pty_server.url) as board:
         with pytest.raises(BoardRequestError, match=code.name) as info:
             board.configure(pins, watchdog_s=0)
