@@ -10,16 +10,29 @@ bounds what the full runtime can reach here.
     python benchmarks/bare_bus.py --agents 32 --rate 100 --seconds 5     # realtime
     python benchmarks/bare_bus.py --agents 8 --rate 100 --lockstep       # round trips
     python benchmarks/bare_bus.py --short                                 # CI-sized (< 15 s)
+    python benchmarks/bare_bus.py --agents 32 --rate 100 --self-clocked   # no tick messages
+    python benchmarks/bare_bus.py --agents 8 --rate 100 --lockstep --window 8
 
 Realtime: tick k is sent at ``T0 + k dt``; a tick is late when some answer is not in when the
 next one is due (as in the runtime). Lockstep: tick k+1 is sent from the callback of the last
 answer of tick k (one round trip per tick, a barrier: the slowest form of lockstep).
+
+Two leaner patterns bound what any design on this bus could reach, not just the runtime's:
+
+* ``--self-clocked`` (realtime): no tick messages at all. The router sends T0 once; every
+  client then answers tick k at ``T0 + k dt`` of its own monotonic clock (the machine's clock,
+  shared by every process here). Only the messages no design can do without are left: each
+  y to the two neighbours and to the manager.
+* ``--window W`` (lockstep): clients run tick k as soon as their neighbours' y_{k-1} are in,
+  up to a horizon the router moves W ticks ahead of the slowest completed tick, one message
+  per half window (as ``hilswarm run`` with ``lockstep_window = W``).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import struct
 import subprocess
 import sys
 import threading
@@ -64,57 +77,156 @@ class BareResult:
         return float(p50) * 1e3, float(p99) * 1e3
 
 
-def client(index: int, n: int, endpoint: str) -> None:
-    """One client process: answer every tick from the tick callback."""
+def _ring_neighbours(index: int, n: int) -> list[int]:
+    """Indices of client ``index``'s two ring neighbours (fewer for n < 3)."""
+    steps = (1, n - 1) if n > 2 else (1,) if n == 2 else ()
+    return [(index + step) % n for step in steps]
+
+
+#: The self-clocked start message: T0 [s, time.monotonic] and the tick period [s].
+_START = struct.Struct("<dd")
+
+
+def client(index: int, n: int, endpoint: str, pattern: str) -> None:
+    """One client process; ``pattern``: ``tick``, ``clock`` or ``window`` (see the module doc)."""
     keys = bus.BusKeys("bare")
     session = bus.open_session(bus.client_config([endpoint]))
     name = f"r{index}"
     publisher = session.declare_publisher(keys.y(name), **bus.TICK_PATH_QOS)
-    received = [0]
+    neighbours = _ring_neighbours(index, n)
+    lock = threading.Lock()
+    # window pattern: the newest y_k heard per neighbour, our next tick, the released horizon
+    heard = dict.fromkeys(neighbours, -1)
+    progress = {"next": 0, "horizon": -1}
+    stop = threading.Event()
+
+    def answer(k: int, t: float) -> None:
+        publisher.put(bus.encode_vector(k, t, _Y_VALUES), attachment=_REPORT)
+
+    def advance() -> None:  # window pattern, under the lock
+        while progress["next"] <= progress["horizon"] and all(
+            heard[j] >= progress["next"] - 1 for j in neighbours
+        ):
+            answer(progress["next"], 0.0)
+            progress["next"] += 1
 
     def on_neighbour(sample: zenoh.Sample) -> None:
-        bus.decode_vector(sample.payload.to_bytes())
-        received[0] += 1
+        k, _t, _values = bus.decode_vector(sample.payload.to_bytes())
+        if pattern == "window":
+            with lock:
+                index_of = int(str(sample.key_expr).split("/")[-2][1:])
+                heard[index_of] = max(heard[index_of], k)
+                advance()
 
     def on_tick(sample: zenoh.Sample) -> None:
         tick = bus.decode_tick(sample.payload.to_bytes())
-        publisher.put(bus.encode_vector(tick.k, tick.t, _Y_VALUES), attachment=_REPORT)
+        if pattern == "tick":
+            answer(tick.k, tick.t)
+            return
+        with lock:
+            progress["horizon"] = max(progress["horizon"], tick.k)
+            advance()
+
+    def run_clock(t0: float, period: float) -> None:
+        k = 0
+        while not stop.is_set():
+            due = t0 + k * period
+            remaining = due - time.monotonic()
+            if remaining > 0 and stop.wait(remaining):
+                return
+            answer(k, k * period)
+            k += 1
+
+    def on_start(sample: zenoh.Sample) -> None:
+        t0, period = _START.unpack(sample.payload.to_bytes())
+        threading.Thread(target=run_clock, args=(t0, period), daemon=True).start()
 
     entities = [
         session.declare_subscriber(
-            keys.y(f"r{(index + step) % n}"),
-            zenoh.handlers.Callback(on_neighbour, indirect=False),
+            keys.y(f"r{j}"), zenoh.handlers.Callback(on_neighbour, indirect=False)
         )
-        for step in ((1, n - 1) if n > 2 else (1,) if n == 2 else ())
+        for j in neighbours
     ]
-    entities.append(
-        session.declare_subscriber(keys.tick, zenoh.handlers.Callback(on_tick, indirect=False))
-    )
+    if pattern == "clock":
+        entities.append(
+            session.declare_subscriber(
+                keys.control, zenoh.handlers.Callback(on_start, indirect=False)
+            )
+        )
+    else:
+        entities.append(
+            session.declare_subscriber(keys.tick, zenoh.handlers.Callback(on_tick, indirect=False))
+        )
     entities.append(session.liveliness().declare_token(keys.alive(name)))
     sys.stdin.read()  # the parent closes stdin to stop us
+    stop.set()
     entities.clear()
     session.close()
 
 
-def run_bare(*, n: int, rate_hz: float, seconds: float, lockstep: bool, port: int) -> BareResult:
-    """Start the router and ``n`` client processes, tick, and return the figures."""
+def run_bare(
+    *,
+    n: int,
+    rate_hz: float,
+    seconds: float,
+    lockstep: bool,
+    port: int,
+    self_clocked: bool = False,
+    window: int = 0,
+) -> BareResult:
+    """Start the router and ``n`` client processes, tick, and return the figures.
+
+    ``self_clocked`` (realtime only): clients keep the schedule themselves. ``window`` > 0
+    (lockstep only): free-running clients within a released horizon instead of a barrier.
+    """
+    if self_clocked and lockstep:
+        raise ValueError("self_clocked is a realtime pattern; window is the lockstep one")
+    if window and not lockstep:
+        raise ValueError("window is a lockstep pattern")
     keys = bus.BusKeys("bare")
     endpoint = bus.loopback_endpoint(port)
     session = bus.open_session(bus.listen_config([endpoint]))
     lock = threading.Lock()
-    state = {"k": -1, "count": 0, "scheduled": 0.0}
+    period = 1.0 / rate_hz
+    n_ticks = max(1, round(seconds * rate_hz))
+    state = {"k": -1, "count": 0, "scheduled": 0.0, "t0": 0.0, "complete": -1, "horizon": -1}
+    counts: dict[int, int] = {}  # self-clocked and window: answers per tick
     completion: list[float] = []
     done = threading.Event()
-    n_ticks = max(1, round(seconds * rate_hz))
     tick_pub = session.declare_publisher(keys.tick, **bus.TICK_PATH_QOS)
+    start_pub = session.declare_publisher(keys.control, **bus.TICK_PATH_QOS)
 
     def send(k: int, scheduled: float) -> None:
         state["k"], state["count"], state["scheduled"] = k, 0, scheduled
         tick_pub.put(bus.encode_tick(bus.TickMessage(k, k / rate_hz)))
 
+    def release(horizon: int) -> None:  # window pattern, under the lock
+        state["horizon"] = horizon
+        tick_pub.put(bus.encode_tick(bus.TickMessage(horizon, horizon / rate_hz)))
+
+    def on_y_counted(k: int) -> None:  # self-clocked and window patterns, under the lock
+        if k >= n_ticks:
+            return
+        counts[k] = counts.get(k, 0) + 1
+        if self_clocked:
+            if counts[k] == n:
+                completion.append(time.monotonic() - (state["t0"] + k * period))
+                del counts[k]
+            return
+        while counts.get(state["complete"] + 1, 0) == n:
+            del counts[state["complete"] + 1]
+            state["complete"] += 1
+        if state["complete"] >= n_ticks - 1:
+            done.set()
+        elif state["complete"] + window >= state["horizon"] + max(1, window // 2):
+            release(min(n_ticks - 1, state["complete"] + window))
+
     def on_y(sample: zenoh.Sample) -> None:
         k = int.from_bytes(sample.payload.to_bytes()[:8], "little", signed=True)
         with lock:
+            if self_clocked or window:
+                on_y_counted(k)
+                return
             if k != state["k"]:
                 return
             state["count"] += 1
@@ -142,9 +254,10 @@ def run_bare(*, n: int, rate_hz: float, seconds: float, lockstep: bool, port: in
             keys.all_alive, zenoh.handlers.Callback(on_alive, indirect=False), history=True
         ),
     ]
+    pattern = "clock" if self_clocked else "window" if window else "tick"
     command = [sys.executable, os.path.abspath(__file__), "--client"]
     clients = [
-        subprocess.Popen([*command, str(i), str(n), endpoint], stdin=subprocess.PIPE)
+        subprocess.Popen([*command, str(i), str(n), endpoint, pattern], stdin=subprocess.PIPE)
         for i in range(n)
     ]
     late = 0
@@ -155,10 +268,18 @@ def run_bare(*, n: int, rate_hz: float, seconds: float, lockstep: bool, port: in
         start = time.perf_counter()
         if lockstep:
             with lock:
-                send(0, start)
+                if window:
+                    release(min(n_ticks - 1, window - 1))
+                else:
+                    send(0, start)
             done.wait(max(60.0, 20 * seconds))
+        elif self_clocked:
+            state["t0"] = time.monotonic() + 0.1
+            start_pub.put(_START.pack(state["t0"], period))
+            time.sleep(0.1 + seconds + 2 * period)
+            with lock:
+                late = n_ticks - sum(1 for c in completion if c <= period)
         else:
-            period = 1.0 / rate_hz
             for k in range(n_ticks):
                 due = start + k * period
                 while (remaining := due - time.perf_counter()) > 0:
@@ -181,7 +302,7 @@ def run_bare(*, n: int, rate_hz: float, seconds: float, lockstep: bool, port: in
         entities.clear()
         session.close()
     with lock:
-        times = np.array(completion)
+        times = np.array([c for c in completion if c <= period] if self_clocked else completion)
     return BareResult(
         n, rate_hz, "lockstep" if lockstep else "realtime", n_ticks, late, times, wall
     )
@@ -192,31 +313,45 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument(
-        "--client", nargs=3, metavar=("INDEX", "N", "ENDPOINT"), help=argparse.SUPPRESS
+        "--client", nargs=4, metavar=("INDEX", "N", "ENDPOINT", "PATTERN"), help=argparse.SUPPRESS
     )
     parser.add_argument("--agents", type=int, default=8)
     parser.add_argument("--rate", type=float, default=100.0, help="tick rate [Hz]")
     parser.add_argument("--seconds", type=float, default=5.0, help="realtime run length [s]")
     parser.add_argument("--lockstep", action="store_true", help="round trips as fast as possible")
+    parser.add_argument(
+        "--self-clocked", action="store_true", help="realtime without tick messages"
+    )
+    parser.add_argument(
+        "--window", type=int, default=0, help="lockstep: free running within W released ticks"
+    )
     parser.add_argument("--port", type=int, default=17650)
     parser.add_argument("--short", action="store_true", help="CI-sized: 8 clients, 50 Hz, 2 s")
     args = parser.parse_args(argv)
     if args.client:
-        client(int(args.client[0]), int(args.client[1]), args.client[2])
+        client(int(args.client[0]), int(args.client[1]), args.client[2], args.client[3])
         return 0
     if args.short:
         args.agents, args.rate, args.seconds = 8, 50.0, 2.0
+    if args.self_clocked and args.lockstep:
+        parser.error("--self-clocked is a realtime pattern (use --window with --lockstep)")
+    if args.window and not args.lockstep:
+        parser.error("--window needs --lockstep")
+    if args.window < 0:
+        parser.error(f"--window {args.window}: expected a number of ticks >= 1")
     result = run_bare(
         n=args.agents, rate_hz=args.rate, seconds=args.seconds, lockstep=args.lockstep,
-        port=args.port,
+        port=args.port, self_clocked=args.self_clocked, window=args.window,
     )  # fmt: skip
     p50, p99 = result.percentiles_ms()
     if args.lockstep:
-        print(f"bare bus, lockstep barrier, {result.n} clients at {result.rate_hz:g} Hz: "
-              f"{result.speed:.1f}x real time (round trip p50 {p50:.2f} ms)")  # fmt: skip
+        how = f"window {args.window}" if args.window else "barrier"
+        print(f"bare bus, lockstep {how}, {result.n} clients at {result.rate_hz:g} Hz: "
+              f"{result.speed:.1f}x real time (p50 {p50:.2f} ms)")  # fmt: skip
     else:
         late = 100 * result.late_fraction
-        print(f"bare bus, realtime, {result.n} clients at {result.rate_hz:g} Hz: "
+        how = "self-clocked" if args.self_clocked else "ticked"
+        print(f"bare bus, realtime {how}, {result.n} clients at {result.rate_hz:g} Hz: "
               f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, late {late:.2f} %")  # fmt: skip
     return 0
 
