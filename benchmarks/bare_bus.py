@@ -326,34 +326,51 @@ def main(argv: list[str] | None = None) -> int:
         "--window", type=int, default=0, help="lockstep: free running within W released ticks"
     )
     parser.add_argument("--port", type=int, default=17650)
-    parser.add_argument("--short", action="store_true", help="CI-sized: 8 clients, 50 Hz, 2 s")
+    parser.add_argument(
+        "--short", action="store_true", help="CI-sized: each pattern, 8 clients at 50 Hz"
+    )
     args = parser.parse_args(argv)
     if args.client:
         client(int(args.client[0]), int(args.client[1]), args.client[2], args.client[3])
         return 0
-    if args.short:
-        args.agents, args.rate, args.seconds = 8, 50.0, 2.0
     if args.self_clocked and args.lockstep:
         parser.error("--self-clocked is a realtime pattern (use --window with --lockstep)")
     if args.window and not args.lockstep:
         parser.error("--window needs --lockstep")
     if args.window < 0:
         parser.error(f"--window {args.window}: expected a number of ticks >= 1")
-    result = run_bare(
-        n=args.agents, rate_hz=args.rate, seconds=args.seconds, lockstep=args.lockstep,
-        port=args.port, self_clocked=args.self_clocked, window=args.window,
-    )  # fmt: skip
-    p50, p99 = result.percentiles_ms()
-    if args.lockstep:
-        how = f"window {args.window}" if args.window else "barrier"
-        print(f"bare bus, lockstep {how}, {result.n} clients at {result.rate_hz:g} Hz: "
-              f"{result.speed:.1f}x real time (p50 {p50:.2f} ms)")  # fmt: skip
+    if args.short:  # every pattern, CI-sized: 8 clients at 50 Hz
+        runs = [
+            dict(lockstep=False, self_clocked=False, window=0, seconds=2.0),
+            dict(lockstep=False, self_clocked=True, window=0, seconds=2.0),
+            dict(lockstep=True, self_clocked=False, window=8, seconds=2.0),
+        ]
+        n, rate = 8, 50.0
     else:
-        late = 100 * result.late_fraction
-        how = "self-clocked" if args.self_clocked else "ticked"
-        print(f"bare bus, realtime {how}, {result.n} clients at {result.rate_hz:g} Hz: "
-              f"p50 {p50:.2f} ms, p99 {p99:.2f} ms, late {late:.2f} %")  # fmt: skip
+        runs = [
+            dict(lockstep=args.lockstep, self_clocked=args.self_clocked, window=args.window,
+                 seconds=args.seconds)
+        ]  # fmt: skip
+        n, rate = args.agents, args.rate
+    for options in runs:
+        result = run_bare(n=n, rate_hz=rate, port=args.port, **options)
+        print(describe(result, self_clocked=bool(options["self_clocked"]),
+                       window=int(options["window"])))  # fmt: skip
     return 0
+
+
+def describe(result: BareResult, *, self_clocked: bool, window: int) -> str:
+    """One line of figures for a run."""
+    p50, p99 = result.percentiles_ms()
+    head = f"{result.n} clients at {result.rate_hz:g} Hz"
+    if result.mode == "lockstep":
+        if window:
+            return f"bare bus, lockstep window {window}, {head}: {result.speed:.1f}x real time"
+        return (f"bare bus, lockstep barrier, {head}: {result.speed:.1f}x real time "
+                f"(round trip p50 {p50:.2f} ms)")  # fmt: skip
+    how = "self-clocked" if self_clocked else "ticked"
+    return (f"bare bus, realtime {how}, {head}: p50 {p50:.2f} ms, p99 {p99:.2f} ms, "
+            f"late {100 * result.late_fraction:.2f} %")  # fmt: skip
 
 
 if __name__ == "__main__":
