@@ -137,9 +137,12 @@ def client(index: int, n: int, endpoint: str, pattern: str) -> None:
             answer(k, k * period)
             k += 1
 
+    clocks: list[threading.Thread] = []
+
     def on_start(sample: zenoh.Sample) -> None:
         t0, period = _START.unpack(sample.payload.to_bytes())
-        threading.Thread(target=run_clock, args=(t0, period), daemon=True).start()
+        clocks.append(threading.Thread(target=run_clock, args=(t0, period), daemon=True))
+        clocks[-1].start()
 
     entities = [
         session.declare_subscriber(
@@ -160,6 +163,8 @@ def client(index: int, n: int, endpoint: str, pattern: str) -> None:
     entities.append(session.liveliness().declare_token(keys.alive(name)))
     sys.stdin.read()  # the parent closes stdin to stop us
     stop.set()
+    for clock in clocks:  # its last put must not meet a closed session
+        clock.join(10)
     entities.clear()
     session.close()
 
