@@ -8,7 +8,6 @@ on the in-process board (``sim://uno``) must agree within the ADC quantisation.
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import ClassVar
@@ -19,7 +18,7 @@ from hilswarm.agents.devices.battery import Battery
 from hilswarm.agents.devices.hbridge_motor import HBridgeMotor
 from hilswarm.agents.link.board import Board
 from hilswarm.agents.link.sim_board import SimBoard
-from hilswarm.agents.link.simavr import SimavrBoard, firmware_dir
+from hilswarm.agents.link.simavr import SimavrBoard
 from hilswarm.agents.vehicle import Vehicle
 
 pytestmark = pytest.mark.firmware
@@ -99,16 +98,7 @@ def run(board: Board) -> tuple[np.ndarray, np.ndarray]:
     return np.array(ys), np.array(us)
 
 
-@pytest.fixture(scope="module")
-def firmware_ready() -> None:
-    if shutil.which("avr-gcc") is None or not Path("/usr/include/simavr/sim_avr.h").exists():
-        pytest.skip("avr-gcc or libsimavr-dev not installed")
-    root = firmware_dir()
-    if not (root / "build" / "hilswarm-simavr").is_file():
-        pytest.skip("firmware not built (tests/firmware/test_firmware_simavr.py builds it)")
-
-
-def test_vehicle_on_simavr_matches_sim(firmware_ready: None) -> None:
+def test_vehicle_on_simavr_matches_sim(firmware_built: Path) -> None:
     with SimBoard("uno", plant=FirstOrderMotor(), dt=DT_S) as sim_board:
         y_sim, u_sim = run(sim_board)
     with SimavrBoard("uno", plant=FirstOrderMotor(), dt=DT_S, timeout_s=0.5) as avr_board:

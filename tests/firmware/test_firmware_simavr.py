@@ -7,8 +7,6 @@ toolchain itself is absent.
 
 from __future__ import annotations
 
-import shutil
-import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -34,32 +32,12 @@ from hilswarm.agents.link.codec import (
     frame_payload,
     parse_payload,
 )
-from hilswarm.agents.link.simavr import SimavrBoard, SimavrHarness, firmware_dir
+from hilswarm.agents.link.simavr import SimavrBoard, SimavrHarness
 
 pytestmark = pytest.mark.firmware
 
-UNO_CAPS = (
-    0x80,
-    0x80,
-    0x03,
-    0x07,
-    0x03,
-    0x07,
-    0x07,
-    0x03,
-    0x03,
-    0x0F,
-    0x0F,
-    0x07,
-    0x03,
-    0x03,
-    0x13,
-    0x13,
-    0x13,
-    0x13,
-    0x13,
-    0x13,
-)
+UNO_CAPS = (0x80, 0x80, 0x03, 0x07, 0x03, 0x07, 0x07, 0x03, 0x03, 0x0F, 0x0F, 0x07, 0x03,
+            0x03, 0x13, 0x13, 0x13, 0x13, 0x13, 0x13)  # fmt: skip
 BLIMP = [
     *(PinConfig(p, PinMode.DIGITAL_OUT, 0) for p in (2, 4, 7, 8, 12)),
     PinConfig(13, PinMode.DIGITAL_OUT, 1),
@@ -71,37 +49,6 @@ BLIMP = [
 ]
 BLIMP_WRITES = {2: 1, 4: 0, 7: 1, 8: 0, 12: 1, 13: 0, 5: 200, 6: 17, 9: 1800}
 SAFE_OUTPUTS = {2: 0, 4: 0, 7: 0, 8: 0, 12: 0, 13: 1, 5: 0, 6: 0, 9: 1500}
-
-
-def _toolchain_missing() -> str | None:
-    if shutil.which("avr-gcc") is None:
-        return "avr-gcc not installed (apt install gcc-avr avr-libc arduino-core-avr)"
-    if not any(
-        Path(p).exists()
-        for p in ("/usr/include/simavr/sim_avr.h", "/usr/local/include/simavr/sim_avr.h")
-    ):
-        return "libsimavr headers not installed (apt install libsimavr-dev)"
-    return None
-
-
-@pytest.fixture(scope="session")
-def firmware_built() -> Path:
-    reason = _toolchain_missing()
-    if reason is not None:
-        pytest.skip(reason)
-    root = firmware_dir()
-    harness = root / "build" / "hilswarm-simavr"
-    elf = root / "build" / "uno" / "hilswarm.elf"
-    if not (harness.is_file() and elf.is_file()):
-        result = subprocess.run(
-            ["make", "-s", "-C", str(root), "all"],
-            capture_output=True,
-            text=True,
-            timeout=900,
-            check=False,
-        )
-        assert result.returncode == 0, f"make -C firmware all failed:\n{result.stderr[-3000:]}"
-    return root
 
 
 @pytest.fixture

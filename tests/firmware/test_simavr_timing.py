@@ -11,8 +11,6 @@ load can only make easier to meet.
 from __future__ import annotations
 
 import itertools
-import shutil
-import subprocess
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -34,7 +32,7 @@ from hilswarm.agents.link.codec import (
     encode_message,
     parse_payload,
 )
-from hilswarm.agents.link.simavr import SimavrHarness, firmware_dir
+from hilswarm.agents.link.simavr import SimavrHarness
 
 pytestmark = pytest.mark.firmware
 
@@ -68,34 +66,9 @@ def tick(seq: int) -> bytes:
     return encode_message(TickMsg(seq, dout, 1 << 14, writes))
 
 
-@pytest.fixture(scope="module")
-def built() -> Path:
-    if shutil.which("avr-gcc") is None:
-        pytest.skip("avr-gcc not installed (apt install gcc-avr avr-libc arduino-core-avr)")
-    if not any(
-        Path(p).exists()
-        for p in ("/usr/include/simavr/sim_avr.h", "/usr/local/include/simavr/sim_avr.h")
-    ):
-        pytest.skip("libsimavr headers not installed (apt install libsimavr-dev)")
-    root = firmware_dir()
-    if not (
-        (root / "build" / "hilswarm-simavr").is_file()
-        and (root / "build" / "uno" / "hilswarm.elf").is_file()
-    ):
-        result = subprocess.run(
-            ["make", "-s", "-C", str(root), "all"],
-            capture_output=True,
-            text=True,
-            timeout=900,
-            check=False,
-        )
-        assert result.returncode == 0, f"make -C firmware all failed:\n{result.stderr[-3000:]}"
-    return root
-
-
 @pytest.fixture(params=[False, True], ids=["unpaced", "paced"])
 def link(
-    built: Path, request: pytest.FixtureRequest
+    firmware_built: Path, request: pytest.FixtureRequest
 ) -> Iterator[tuple[SimavrHarness, serial.Serial]]:
     """A running harness and its pty, the Blimpduino-like pins configured."""
     harness = SimavrHarness("uno", paced=request.param)
@@ -173,7 +146,7 @@ def test_a_burst_beyond_the_uart_fifo_arrives_whole_at_wire_speed(
     assert min(gaps) >= 18 * BYTE_US, gaps
 
 
-def test_paced_simulated_time_never_runs_ahead_of_the_wall_clock(built: Path) -> None:
+def test_paced_simulated_time_never_runs_ahead_of_the_wall_clock(firmware_built: Path) -> None:
     harness = SimavrHarness("uno", paced=True)
     before_start = time.monotonic()
     try:
