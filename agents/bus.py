@@ -8,9 +8,9 @@ Key space, one experiment per prefix ``hilswarm/<exp>/``:
 * ``tick`` — the instance manager's tick messages (:func:`encode_tick`), each releasing the
   ticks up to its ``k`` (:class:`TickMessage`).
 * ``control`` — swarm-wide commands (:class:`ControlCommand`: stop, estop, pause, resume).
-* ``agent/<name>/y`` — the agent's output y_k (:func:`encode_vector`), with its
-  :class:`TickReport` (timings, u_k, x_hat_k) as attachment, so the manager and its recorder
-  get everything of a tick in one message. Neighbours subscribe to this *explicit* key.
+* ``agent/<name>/y`` — the agent's output y_k (:func:`encode_vector`), with its tick report
+  (:func:`encode_report`: timings, u_k, x_hat_k) as attachment, so the manager and its
+  recorder get everything of a tick in one message. Neighbours subscribe to this *explicit* key.
 * ``agent/<name>/u``, ``agent/<name>/x_hat`` — applied input u_k and controller state, for
   other listeners (tools, dashboards); an agent publishes there only while someone subscribes.
 * ``agent/<name>/status`` — lifecycle transitions and acknowledgements (JSON, rare).
@@ -321,23 +321,14 @@ class AgentTiming:
     skipped: int = 0
 
 
-@dataclass(frozen=True)
-class TickReport:
-    """What an agent reports to the manager with y_k (the attachment of its y message).
-
-    Attributes:
-        timing: where the tick's time went.
-        u: the input u_k applied over [t_{k-1}, t_k) (empty at tick 0 and when not actuating).
-        x_hat: the controller state after computing u_k (empty when there is none).
-    """
-
-    timing: AgentTiming
-    u: np.ndarray
-    x_hat: np.ndarray
-
-
 def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray | None) -> bytes:
-    """Encode a :class:`TickReport`: timing (3 float64, uint32), sizes (2 uint16), u, x_hat."""
+    """Encode an agent's tick report, the attachment of its y_k message.
+
+    Layout: timing (compute, actuate, sense [s] as 3 float64; skipped ticks as uint32), the
+    sizes of u and x_hat (2 uint16), then u_k (the input applied over [t_{k-1}, t_k); empty at
+    tick 0 and when not actuating) and x_hat_k (the controller state after computing u_k), as
+    float64. The recorder unpacks it in ``orchestrator/record_stream.py``.
+    """
     u_bytes = b"" if u is None else np.asarray(u, dtype="<f8").tobytes()
     x_bytes = b"" if x_hat is None else np.asarray(x_hat, dtype="<f8").tobytes()
     return (
@@ -354,24 +345,6 @@ def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray |
     )
 
 
-def decode_report(payload: bytes | bytearray | memoryview | None) -> TickReport:
-    """Decode :func:`encode_report`'s bytes (``None`` or empty: zero timing, no vectors)."""
-    if not payload:
-        return TickReport(AgentTiming(), np.zeros(0), np.zeros(0))
-    size = len(payload)
-    if size < _REPORT_HEADER.size:
-        raise BusMessageError(
-            f"tick report of {size} bytes, expected at least {_REPORT_HEADER.size}"
-        )
-    compute_s, actuate_s, sense_s, skipped, n_u, n_x = _REPORT_HEADER.unpack_from(payload)
-    if size != _REPORT_HEADER.size + 8 * (n_u + n_x):
-        raise BusMessageError(f"tick report of {size} bytes does not hold {n_u} + {n_x} values")
-    offset = _REPORT_HEADER.size
-    u = np.frombuffer(payload, dtype="<f8", count=n_u, offset=offset).copy()
-    x_hat = np.frombuffer(payload, dtype="<f8", count=n_x, offset=offset + 8 * n_u).copy()
-    return TickReport(AgentTiming(compute_s, actuate_s, sense_s, skipped), u, x_hat)
-
-
 def unpack_vector(payload: bytes | bytearray | memoryview) -> tuple[int, float, tuple[float, ...]]:
     """Like :func:`decode_vector`, but the values as a tuple of floats (cheap for short vectors)."""
     size = len(payload)
@@ -382,26 +355,6 @@ def unpack_vector(payload: bytes | bytearray | memoryview) -> tuple[int, float, 
     k, t = _VECTOR_HEADER.unpack_from(payload)
     values = _floats((size - _VECTOR_HEADER.size) // 8).unpack_from(payload, _VECTOR_HEADER.size)
     return k, t, values
-
-
-def unpack_report(
-    payload: bytes | bytearray | memoryview | None,
-) -> tuple[AgentTiming, tuple[float, ...], tuple[float, ...]]:
-    """Like :func:`decode_report`, but ``u`` and ``x_hat`` as tuples of floats."""
-    if not payload:
-        return AgentTiming(), (), ()
-    size = len(payload)
-    if size < _REPORT_HEADER.size:
-        raise BusMessageError(
-            f"tick report of {size} bytes, expected at least {_REPORT_HEADER.size}"
-        )
-    compute_s, actuate_s, sense_s, skipped, n_u, n_x = _REPORT_HEADER.unpack_from(payload)
-    if size != _REPORT_HEADER.size + 8 * (n_u + n_x):
-        raise BusMessageError(f"tick report of {size} bytes does not hold {n_u} + {n_x} values")
-    offset = _REPORT_HEADER.size
-    u = _floats(n_u).unpack_from(payload, offset)
-    x_hat = _floats(n_x).unpack_from(payload, offset + 8 * n_u)
-    return AgentTiming(compute_s, actuate_s, sense_s, skipped), u, x_hat
 
 
 _FLOATS: dict[int, struct.Struct] = {}
