@@ -42,6 +42,7 @@ import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.outcome import COUNTER_NAMES
 from hilswarm.orchestrator.record_stream import (
     ORCHESTRATOR,
     FrameRecorder,
@@ -54,7 +55,7 @@ from hilswarm.orchestrator.record_stream import (
     y_frame,
 )
 from hilswarm.orchestrator.recorder import Recorder
-from hilswarm.orchestrator.run_summary import RunSummary
+from hilswarm.orchestrator.run_summary import AgentEvent, RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
 from hilswarm.orchestrator.tick_window import TickAccount, TickWindow
 
@@ -70,6 +71,9 @@ DEFAULT_STOP_TIMEOUT_S = 5.0
 OVERLOAD_BLOCK_TICKS = 100
 #: Realtime: the overload warning is given when more than this fraction of a block was late.
 OVERLOAD_LATE_FRACTION = 0.1
+#: Late ticks above this fraction of the planned ticks degrade the outcome (exit status 3)
+#: when the experiment does not set ``max_late_fraction``.
+DEFAULT_MAX_LATE_FRACTION = 0.01
 #: Default period of handing records to the recorder [s].
 DEFAULT_FLUSH_PERIOD_S = 0.02
 
@@ -174,6 +178,10 @@ class InstanceManager:
         self.summary._dt = self.dt
         self.summary.late = dict.fromkeys(self.names, 0)
         self.summary.planned_ticks = experiment.n_ticks
+        # read defensively: the key comes with the experiment schema
+        self.summary.max_late_fraction = float(
+            getattr(experiment, "max_late_fraction", DEFAULT_MAX_LATE_FRACTION)
+        )
         self._completion = np.full(max(experiment.n_ticks, 1), np.nan)
         self._clock_origin = clock()
 
@@ -302,8 +310,32 @@ class InstanceManager:
             if self._sink is not None:
                 self._frames.append(status_frame(i, self._wall_ns(), payload))
             self.agent_states[name] = state
+            self._note_status(name, state, message)
         if state == "safe":
             self._events.put((_SAFE, name, str(message.get("detail", ""))))
+
+    def _note_status(self, name: str, state: str, message: dict[str, Any]) -> None:
+        """Keep what the outcome needs from an agent's status (call under the lock)."""
+        summary = self.summary
+        try:
+            k = int(message.get("k", 0))
+        except (TypeError, ValueError):
+            k = 0
+        detail = str(message.get("detail", ""))
+        if state == "safe" and name not in summary.safe:
+            summary.safe[name] = AgentEvent(k, detail)
+        elif state == "degraded" and message.get("kind", "transition") == "transition":
+            summary.degraded.setdefault(name, []).append(AgentEvent(k, detail))
+        counters = message.get("counters")
+        found = dict(counters) if isinstance(counters, dict) else {}
+        found.update({key: message[key] for key in COUNTER_NAMES if key in message})
+        kept = {
+            key: int(value)
+            for key, value in found.items()
+            if isinstance(value, int | float) and not isinstance(value, bool)
+        }
+        if kept:
+            summary.counters.setdefault(name, {}).update(kept)
 
     def _on_vector(self, sample: zenoh.Sample) -> None:
         """A vector on another agent key (telemetry): recorded as it came."""
@@ -364,8 +396,9 @@ class InstanceManager:
             if not frames:
                 return
             data = b"".join(frames)
+            count = len(frames)
             frames.clear()
-        sink.write(data)
+        sink.write(data, count=count, tick=self._tick.base)
 
     def request_stop(self, reason: str) -> None:
         """Ask the run to stop (thread-safe, signal-safe): agents to safe, then stopped."""
@@ -653,6 +686,7 @@ class InstanceManager:
             self._stop_reason = f"stop requested{': ' + reason if reason else ''}"
         elif command is bus.ControlCommand.ESTOP:
             self._estop_tick = k
+            self.summary.estop_tick = k
             self._record_event(ORCHESTRATOR, "estop", k=k, detail=reason)
             self._stop_reason = f"e-stop at tick {k}{': ' + reason if reason else ''}"
         elif command is bus.ControlCommand.PAUSE and not self._paused:
@@ -687,6 +721,7 @@ class InstanceManager:
             # Tell the neighbours now: they may be waiting for this agent's output.
             self._send_tick(self._tick.released, sorted(self.lost))
         self.summary.lost.append(name)
+        self.summary.lost_at[name] = AgentEvent(k, reason)
         logger.warning("agent %s lost at tick %d: %s", name, k, reason)
         if self._display is not None:
             self._display.log(f"agent {name} lost at tick {k}: {reason}")

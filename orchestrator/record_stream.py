@@ -78,8 +78,8 @@ ORCHESTRATOR = "orchestrator"
 class RecordSink(Protocol):
     """Where the manager's frames go (the recorder process's pipe, or a recorder in-process)."""
 
-    def write(self, data: bytes) -> None:
-        """Take a batch of whole frames."""
+    def write(self, data: bytes, *, count: int = 0, tick: int = -1) -> None:
+        """Take a batch of whole frames (``count`` of them, made at the manager's ``tick``)."""
 
 
 # -- encoding (the manager's side) ------------------------------------------------------------
@@ -213,8 +213,9 @@ class FrameRecorder:
         self.frames = 0
         self.errors = 0
 
-    def write(self, data: bytes) -> None:
+    def write(self, data: bytes, *, count: int = 0, tick: int = -1) -> None:
         """:class:`RecordSink` interface: decode and record a batch of whole frames."""
+        del count, tick  # written here and now: nothing to account for
         reader = FrameReader()
         self.apply_all(reader.feed(data))
         if reader.pending:

@@ -106,7 +106,7 @@ class Recorder:
         path: the MCAP file to create (its folder is created if needed; an existing file is
             replaced).
         experiment: the experiment being run (recorded in ``/experiment``).
-        chunk_size: MCAP chunk size [bytes].
+        chunk_size: MCAP chunk size [bytes] (``None``: chunks end only at :meth:`flush`).
         compression: chunk compression, ``"zstd"``, ``"lz4"`` or ``"none"`` (default:
             :data:`~hilswarm.agents.mcap_io.DEFAULT_COMPRESSION`).
         log_time_ns: log time [ns, wall clock, Unix epoch] of the ``/experiment`` message.
@@ -122,7 +122,7 @@ class Recorder:
         path: str | Path,
         experiment: Experiment,
         *,
-        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        chunk_size: int | None = DEFAULT_CHUNK_SIZE,
         compression: str = DEFAULT_COMPRESSION,
         log_time_ns: int | None = None,
     ) -> None:
@@ -333,6 +333,12 @@ class Recorder:
                 raise RecordingError(f"{TICKS_TOPIC}: timing key {key!r} clashes with k/t/values")
             message[str(key)] = value
         self._write_json(TICKS_TOPIC, message, log_time_ns, TICKS_SCHEMA)
+
+    def flush(self) -> None:
+        """Finish the chunk in progress and hand the file everything written so far."""
+        with self._lock:
+            if not self._closed:
+                self._writer.flush()
 
     def close(self) -> None:
         """Write the summary and footer and close the file (idempotent)."""

@@ -3,35 +3,53 @@
 ``hilswarm run`` starts ``python -m hilswarm.orchestrator.recorder_process`` with a pipe on
 its standard input. The first message on the pipe says what to record (file, experiment as
 loaded, log time of ``/experiment``); everything after it is the manager's record stream
-(:mod:`hilswarm.orchestrator.record_stream`). The process writes ``/experiment``, each
-vehicle's calibration and output names (:func:`~hilswarm.orchestrator.recorder.record_vehicles`),
-says ``ready`` on its standard output, then records every frame. JSON encoding and MCAP
-chunking happen here, on the other core, never under the manager's GIL.
+(:mod:`hilswarm.orchestrator.record_stream`) in numbered batches. The process writes
+``/experiment``, each vehicle's calibration and output names
+(:func:`~hilswarm.orchestrator.recorder.record_vehicles`), says ``ready`` on its standard
+output, then records every batch. JSON encoding and MCAP chunking happen here, on the other
+core, never under the manager's GIL.
 
 Recording is not on the real-time path. The process lowers its own CPU priority
 (``os.nice(RECORDER_NICE)``, +10), so the agents and the manager win the CPU when the cores are
 busy and the recorder catches up when they idle. The manager never waits for it:
 :meth:`RecorderProcess.write` queues the batch and returns, a thread moves the queue into the
-pipe (enlarged to :data:`PIPE_SIZE`, within ``/proc/sys/fs/pipe-max-size``). Only when
-:data:`DEFAULT_QUEUE_BYTES` of records wait does ``write`` wait too (logged once): records are
-never dropped while the recorder lives.
+pipe. Only when :data:`DEFAULT_QUEUE_BYTES` of records wait does ``write`` wait too (logged
+once): records are never dropped while a recorder lives.
 
-End of the recording: the manager closes the pipe after its last frame; the process records
+Nothing is lost when the recorder dies. The process finishes its MCAP chunk at batch
+boundaries (at least every :data:`ACK_PERIOD_S`) and then *acknowledges* the last batch it
+holds on disk (``ack N`` on its standard output). :class:`RecorderProcess` keeps every batch
+until it is acknowledged. If the process dies (killed, crashed), a new one is started on the
+next *segment* of the recording (``run.mcap``, ``run.1.mcap``, ``run.2.mcap``, ...: each a
+complete MCAP file with ``/experiment`` and the calibrations) and the unacknowledged batches
+are sent again, so the new segment continues where the last chunk on disk ended. The dead
+segment is rewritten as a complete file at the end (``hilswarm recover``'s reading). Only a
+failure that a restart cannot mend ends the recording: the disk is full (the process says
+``error nospace``), or :data:`MAX_RESTARTS` restarts were used up. Then the owner's
+``on_failure`` is called (``hilswarm run`` applies ``on_recording_failure``) and the records
+from there on are counted as lost (:meth:`RecorderProcess.report`).
+
+A run that fails before its first tick leaves no file: with ``staged=True`` the process writes
+to a hidden name beside the file, :meth:`RecorderProcess.publish` gives it its name when the
+run begins, and :meth:`RecorderProcess.close` removes a file that was never published.
+
+End of the recording: the manager closes the pipe after its last batch; the process records
 what is left and closes the file (summary, indexes, footer). The process runs in its own
 session, so a Ctrl-C at the terminal reaches only the orchestrator, which then stops the run in
-order and closes the pipe (after handing over what is queued). If the orchestrator is killed,
-the pipe closes too and the file is still closed properly (with what reached the pipe); if the
-recorder itself is killed, ``hilswarm recover`` rewrites the file from its complete chunks.
+order. If the orchestrator is killed, the pipe closes too and the file is still closed
+properly (with what reached the pipe).
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import logging
 import os
 import pickle
 import select
+import shutil
 import signal
 import struct
 import subprocess
@@ -39,16 +57,18 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import IO, Any
 
 from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.record_stream import FrameReader, FrameRecorder
 from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
+from hilswarm.orchestrator.run_summary import RecordingReport
 
 logger = logging.getLogger(__name__)
 
@@ -65,13 +85,25 @@ RECORDER_NICE = 10
 DEFAULT_READY_TIMEOUT_S = 60.0
 #: Bound on waiting for the process to finish the file after the pipe closed [s].
 DEFAULT_CLOSE_TIMEOUT_S = 60.0
+#: The recorder finishes its chunk and acknowledges at least this often while batches come [s]
+#: (what a restarted recorder has to be sent again).
+ACK_PERIOD_S = 0.25
+#: Restarts of a dead recorder process in one run before the recording is given up.
+MAX_RESTARTS = 3
+#: Exit status of a recorder process whose disk is full.
+EXIT_NO_SPACE = 3
 
 _LENGTH = struct.Struct("<I")
+#: Head of a batch on the pipe: sequence number, length of the frames that follow [bytes].
+_BATCH = struct.Struct("<qI")
 _F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 _F_GETPIPE_SZ = getattr(fcntl, "F_GETPIPE_SZ", 1032)
 _PIPE_MAX_SIZE = Path("/proc/sys/fs/pipe-max-size")
 _MIN_PIPE_SIZE = 64 * 1024
-_READY = b"ready\n"
+_READY = b"ready"
+_ACK = b"ack"
+_ERROR = b"error"
+_NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 def _enlarge_pipe(fd: int, size: int) -> int:
@@ -93,22 +125,64 @@ def _enlarge_pipe(fd: int, size: int) -> int:
         return 0
 
 
+def segment_path(path: Path, index: int) -> Path:
+    """Segment ``index`` of the recording ``path``: ``run.mcap``, ``run.1.mcap``, ..."""
+    return path if index == 0 else path.with_name(f"{path.stem}.{index}{path.suffix or '.mcap'}")
+
+
+def existing_segments(path: Path) -> list[Path]:
+    """The files of the recording ``path`` that exist (itself and its ``run.N.mcap``)."""
+    found = [path] if path.exists() else []
+    index = 1
+    while segment_path(path, index).exists():
+        found.append(segment_path(path, index))
+        index += 1
+    return found
+
+
+@dataclass
+class _Batch:
+    seq: int
+    data: bytes
+    count: int  # records (frames) in it
+    tick: int  # the manager's tick when it was handed over (-1: unknown)
+
+
+def _signal_text(code: int | None) -> str:
+    if code is None:
+        return "did not exit"
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with status {code}"
+
+
 class RecorderProcess:
     """The recorder process of one run, seen from the orchestrator (a :class:`RecordSink`).
 
     :meth:`write` never waits for the recorder: a thread of this object hands the records to
     the process's pipe, and up to ``queue_bytes`` of them wait in memory while the recorder
     lags behind (it runs at a lower CPU priority, :data:`RECORDER_NICE`). Only beyond that
-    bound does :meth:`write` wait, once logged; nothing is dropped unless the process died.
+    bound does :meth:`write` wait, once logged. A dead process is replaced (a new segment of
+    the recording) and given the batches it had not acknowledged: nothing is dropped unless the
+    recording cannot go on (disk full, restarts used up), which ``on_failure`` is told.
 
     Args:
         path: the MCAP file to write.
         experiment: the experiment as run (after command-line overrides).
         log_time_ns: log time of ``/experiment`` [ns, wall clock, Unix epoch].
-        chunk_size: MCAP chunk size [bytes].
+        chunk_size: MCAP chunk size [bytes]; ``None`` (default): a chunk ends where the
+            process acknowledges (so a new segment repeats nothing the dead one kept).
         compression: MCAP chunk compression (``"zstd"``, ``"lz4"`` or ``"none"``).
-        queue_bytes: records kept in memory while the pipe is full [bytes].
+        queue_bytes: records kept in memory while the pipe is full or not acknowledged [bytes].
         python: interpreter to run the recorder with.
+        staged: write under a hidden name until :meth:`publish` (a run that never starts
+            leaves no file).
+        on_failure: called once (from a thread of this object) with the reason when the
+            recording cannot go on.
+        max_restarts: restarts of a dead process before the recording is given up.
 
     Call :meth:`wait_ready` before the first tick and :meth:`close` on every exit path.
     """
@@ -119,48 +193,89 @@ class RecorderProcess:
         experiment: Experiment,
         *,
         log_time_ns: int,
-        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        chunk_size: int | None = None,
         compression: str = DEFAULT_COMPRESSION,
         queue_bytes: int = DEFAULT_QUEUE_BYTES,
         python: str = sys.executable,
+        staged: bool = False,
+        on_failure: Callable[[str], None] | None = None,
+        max_restarts: int = MAX_RESTARTS,
     ) -> None:
         if queue_bytes < 1:
             raise RecordingError(f"queue_bytes must be positive [bytes], got {queue_bytes}")
         self.path = Path(path)
+        self._experiment = experiment
+        self._log_time_ns = int(log_time_ns)
+        self._chunk_size = chunk_size
+        self._compression = str(compression)
+        self._python = python
+        self._on_failure = on_failure
+        self._max_restarts = max_restarts
+        self._published = not staged
+        self._staging = (
+            self.path.with_name(f".{self.path.name}.starting-{os.getpid()}") if staged else None
+        )
+        self._changed = threading.Condition(threading.Lock())
+        self._queue_bytes = queue_bytes
+        self._queue: deque[_Batch] = deque()  # not yet in the pipe
+        self._sent: deque[_Batch] = deque()  # in the pipe, not acknowledged
+        self._queued = 0  # bytes in both
+        self._seq = 0
+        self._tick = -1  # the latest tick a batch came with
+        self._closing = False
+        self._stdin_closed = False
+        self._finished = False
+        self._failed = ""
+        self._broken = False  # the pipe of the current process broke
+        self._ready = threading.Event()
+        self._waited = False  # write() waited for room once (logged once)
+        self._generation = 0
+        self._segments: list[Path] = [self.path]
+        self._dead_segments: list[Path] = []
+        self._failures: list[str] = []
+        self._lost_records = 0
+        self._lost_ticks: tuple[int, int] | None = None
+        self._stopped_at_tick: int | None = None
+        self._exit_code: int | None = None
+        self.bytes_written = 0
+        self.write_waits = 0
+        self.restarts = 0
+        self.resent_records = 0
+        self.process = self._spawn(self._staging or self.path)
+        self.pipe_size = _enlarge_pipe(self._fd, PIPE_SIZE)
+        self._writer = threading.Thread(
+            target=self._hand_over, name=f"recorder pipe {self.path.name}", daemon=True
+        )
+        self._reader = threading.Thread(
+            target=self._listen, name=f"recorder acks {self.path.name}", daemon=True
+        )
+        self._writer.start()
+        self._reader.start()
+
+    # -- the process -------------------------------------------------------------------------
+
+    def _spawn(self, path: Path) -> subprocess.Popen[bytes]:
+        """Start a recorder process on ``path`` (call with the lock held, or before threads)."""
         setup = pickle.dumps(
             {
-                "path": str(self.path),
-                "experiment": experiment,
-                "log_time_ns": int(log_time_ns),
-                "chunk_size": int(chunk_size),
-                "compression": str(compression),
+                "path": str(path),
+                "experiment": self._experiment,
+                "log_time_ns": self._log_time_ns,
+                "chunk_size": self._chunk_size,
+                "compression": self._compression,
             }
         )
-        self.process = subprocess.Popen(
-            [python, "-m", "hilswarm.orchestrator.recorder_process"],
+        process = subprocess.Popen(
+            [self._python, "-m", "hilswarm.orchestrator.recorder_process"],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             start_new_session=True,
         )
-        if self.process.stdin is None or self.process.stdout is None:  # pragma: no cover
+        if process.stdin is None or process.stdout is None:  # pragma: no cover
             raise RecordingError("the recorder process has no pipes")
-        self._fd = self.process.stdin.fileno()
-        self.pipe_size = _enlarge_pipe(self._fd, PIPE_SIZE)
-        self._failed = ""
-        self._ready = False
-        self._queue_bytes = queue_bytes
-        self._queue: deque[bytes] = deque()
-        self._queued = 0  # bytes in the queue and in the writer's hands
-        self._closing = False
-        self._waited = False  # write() waited for room once (logged once)
-        self._changed = threading.Condition(threading.Lock())
-        self.bytes_written = 0
-        self.write_waits = 0
-        self._writer = threading.Thread(
-            target=self._hand_over, name=f"recorder pipe {self.path.name}", daemon=True
-        )
-        self._writer.start()
-        self.write(_LENGTH.pack(len(setup)) + setup)
+        self._fd = process.stdin.fileno()
+        self._setup = _LENGTH.pack(len(setup)) + setup
+        return process
 
     def wait_ready(self, timeout_s: float = DEFAULT_READY_TIMEOUT_S) -> None:
         """Block until the file is created and the run's start is recorded.
@@ -168,38 +283,171 @@ class RecorderProcess:
         Raises:
             RecordingError: the process failed (e.g. the file cannot be created) or timed out.
         """
-        if self._ready:
-            return
-        stdout = self.process.stdout
-        if stdout is None:  # pragma: no cover
-            raise RecordingError("the recorder process has no standard output")
-        ready, _, _ = select.select([stdout], [], [], timeout_s)
-        line = stdout.readline() if ready else b""
-        if line != _READY:
-            code = self.process.poll()
-            if code is None and ready:  # its output closed: it is exiting
-                with contextlib.suppress(subprocess.TimeoutExpired):
-                    code = self.process.wait(timeout=10)
-            why = f"exited with status {code}" if code is not None else "did not answer"
-            raise RecordingError(
-                f"the recorder process for {self.path} {why} within {timeout_s} s; "
-                "see its log above"
-            )
-        self._ready = True
+        deadline = time.monotonic() + timeout_s
+        while not self._ready.wait(timeout=0.05):
+            if self._failed or self._finished:
+                raise RecordingError(
+                    f"the recorder process for {self.path} {self._failed or 'ended'}; "
+                    "see its log above"
+                )
+            if time.monotonic() > deadline:
+                raise RecordingError(
+                    f"the recorder process for {self.path} did not answer within {timeout_s} s"
+                )
 
-    def write(self, data: bytes) -> None:
+    def publish(self, *, replace: bool = False) -> None:
+        """Give a staged recording its name (the run begins). Idempotent.
+
+        Args:
+            replace: replace an existing file of that name (and remove the stale segments of
+                an older recording beside it); otherwise an existing file is an error.
+
+        Raises:
+            RecordingError: the file exists and ``replace`` is false, or it cannot be renamed.
+        """
+        with self._changed:
+            if self._published or self._staging is None:
+                self._published = True
+                return
+            try:
+                if replace:
+                    for stale in existing_segments(self.path)[1:]:
+                        stale.unlink()
+                    os.replace(self._staging, self.path)
+                else:
+                    os.link(self._staging, self.path)  # refuses to replace, unlike rename
+                    os.unlink(self._staging)
+            except FileExistsError as exc:
+                raise RecordingError(
+                    f"{self.path} exists; it is not replaced (use --force to replace it)"
+                ) from exc
+            except OSError as exc:
+                raise RecordingError(f"cannot name the recording {self.path}: {exc}") from exc
+            self._published = True
+
+    def _listen(self) -> None:
+        """The reader thread: acknowledgements, errors and the end of each process."""
+        while True:
+            process = self.process
+            stdout = process.stdout
+            error = ""
+            if stdout is not None:
+                for line in stdout:
+                    word, _, rest = line.strip().partition(b" ")
+                    if word == _ACK:
+                        self._acknowledge(int(rest))
+                    elif word == _READY:
+                        self._ready.set()
+                    elif word == _ERROR:
+                        error = rest.decode(errors="replace")
+                stdout.close()
+            code = process.wait()
+            if not self._ended(process, code, error):
+                return
+
+    def _acknowledge(self, seq: int) -> None:
+        with self._changed:
+            sent = self._sent
+            while sent and sent[0].seq <= seq:
+                batch = sent.popleft()
+                self._queued -= len(batch.data)
+                self.bytes_written += len(batch.data)
+            self._changed.notify_all()
+
+    def _ended(self, process: subprocess.Popen[bytes], code: int, error: str) -> bool:
+        """A process ended; returns True when a new one was started (keep listening)."""
+        failure = ""
+        with self._changed:
+            self._exit_code = code
+            if code == 0 and self._closing and self._stdin_closed:
+                self._finished = True
+                self._changed.notify_all()
+                return False
+            segment = self._segments[-1]
+            what = f"the recorder process of {segment.name} {_signal_text(code)}"
+            if error:
+                what += f" ({error})"
+            tick = self._tick
+            at = f" at tick {tick}" if tick >= 0 else ""
+            no_space = code == EXIT_NO_SPACE or error.startswith("nospace")
+            started = self._published and self._ready.is_set()
+            if no_space or not started or self.restarts >= self._max_restarts:
+                why = "the disk is full" if no_space else (
+                    "restarts used up" if started else "before the run began"
+                )  # fmt: skip
+                failure = f"{what}{at}; recording stopped: {why}"
+                if started:
+                    self._dead_segments.append(segment)  # rewritten complete at close
+                self._give_up(failure)
+            else:
+                self.restarts += 1
+                self._dead_segments.append(segment)
+                resent = sum(batch.count for batch in self._sent)
+                new = segment_path(self.path, len(self._segments))
+                self._segments.append(new)
+                self._queue.extendleft(reversed(self._sent))
+                self._sent.clear()
+                self.resent_records += resent
+                self._failures.append(
+                    f"{what}{at}; continued in {new.name} ({resent} records sent again)"
+                )
+                logger.warning("%s; continuing in %s", what, new)
+                self._generation += 1
+                self._broken = False
+                self._stdin_closed = False
+                self.process = self._spawn(new)
+                _enlarge_pipe(self._fd, PIPE_SIZE)
+                self._changed.notify_all()
+                return True
+        logger.error("%s", failure)
+        if self._on_failure is not None:
+            self._on_failure(failure)
+        return False
+
+    def _give_up(self, failure: str) -> None:
+        """The recording cannot go on: count what is lost (call with the lock held)."""
+        self._failed = failure
+        self._failures.append(failure)
+        pending = list(self._sent) + list(self._queue)
+        self._sent.clear()
+        self._queue.clear()
+        self._queued = 0
+        first = min((b.tick for b in pending if b.tick >= 0), default=self._tick)
+        self._stopped_at_tick = max(first, 0) if self._published else None
+        for batch in pending:
+            self._count_lost(batch.count, batch.tick)
+        self._changed.notify_all()
+
+    def _count_lost(self, count: int, tick: int) -> None:
+        if not count:
+            return
+        self._lost_records += count
+        if tick >= 0:
+            first, last = self._lost_ticks or (tick, tick)
+            self._lost_ticks = (min(first, tick), max(last, tick))
+
+    # -- writing -----------------------------------------------------------------------------
+
+    def write(self, data: bytes, *, count: int = 0, tick: int = -1) -> None:
         """Hand a batch of frames to the process; returns at once unless the queue is full.
 
-        While ``queue_bytes`` of records wait for the pipe, this waits for room (logged once:
-        the recorder cannot keep up); a batch larger than the bound waits for an empty queue.
-        After the process died (:attr:`failed`) records are not kept.
+        Args:
+            data: whole frames (or pieces of them).
+            count: records in ``data`` (for the count of lost records, should any be lost).
+            tick: the manager's tick when the batch was made (-1: unknown).
+
+        While ``queue_bytes`` of records wait for the pipe or an acknowledgement, this waits
+        for room (logged once: the recorder cannot keep up); a batch larger than the bound
+        waits for an empty queue. After the recording failed, records are counted as lost.
         """
         if not data:
             return
         changed = self._changed
         with changed:
+            self._tick = max(self._tick, tick)
             if self._failed:
-                return  # logged when it failed
+                self._count_lost(count, tick)
+                return
             if self._queued and self._queued + len(data) > self._queue_bytes:
                 self.write_waits += 1
                 if not self._waited:
@@ -212,6 +460,7 @@ class RecorderProcess:
                     )
                 while self._queued and self._queued + len(data) > self._queue_bytes:
                     if self._failed:
+                        self._count_lost(count, tick)
                         return
                     changed.wait(1.0)
             if self._closing:
@@ -220,91 +469,140 @@ class RecorderProcess:
                     len(data),
                     self.path,
                 )
+                self._count_lost(count, tick)
                 return
-            self._queue.append(bytes(data))
+            self._seq += 1
+            self._queue.append(_Batch(self._seq, bytes(data), count, tick))
             self._queued += len(data)
             changed.notify_all()
 
     def _hand_over(self) -> None:
-        """The writer thread: move queued records into the pipe (blocking writes)."""
+        """The writer thread: move queued batches into the pipe of the current process."""
         changed = self._changed
+        generation = -1
+        stdin: IO[bytes] | None = None
         while True:
             with changed:
-                while not self._queue and not self._closing:
+                while True:
+                    if self._failed or self._finished:
+                        return
+                    if not self._broken:
+                        if generation != self._generation or self._queue:
+                            break  # a new process (its set-up message first), or batches
+                        if self._closing and not self._stdin_closed:
+                            self._close_stdin()  # the process acknowledges the rest at its end
                     changed.wait()
-                if not self._queue:
-                    return  # closing, and everything is handed over
-                batch = self._queue.popleft() if len(self._queue) == 1 else b"".join(self._queue)
-                self._queue.clear()
+                parts: list[bytes] = []
+                if generation != self._generation:
+                    if stdin is not None:  # the dead process's pipe: only this thread writes it
+                        with contextlib.suppress(OSError):
+                            stdin.close()
+                    generation = self._generation
+                    stdin = self.process.stdin
+                    parts.append(self._setup)
+                while self._queue:
+                    batch = self._queue.popleft()
+                    self._sent.append(batch)
+                    parts += (_BATCH.pack(batch.seq, len(batch.data)), batch.data)
+                fd = self._fd
             try:
-                view = memoryview(batch)
+                view = memoryview(b"".join(parts))
                 while view:
-                    written = os.write(self._fd, view)
+                    written = os.write(fd, view)
                     view = view[written:]
-            except OSError as exc:  # BrokenPipeError: the recorder died; the run goes on
+            except OSError as exc:  # BrokenPipeError: the process died; the reader restarts it
                 with changed:
-                    lost = self._queued
-                    self._failed = str(exc) or type(exc).__name__
-                    self._queue.clear()
-                    self._queued = 0
-                    changed.notify_all()
-                logger.error(
-                    "the recorder process of %s stopped taking records (%s); %d bytes of "
-                    "records not recorded",
-                    self.path,
-                    exc,
-                    lost,
-                )
-                return
-            with changed:
-                self.bytes_written += len(batch)
-                self._queued -= len(batch)
-                changed.notify_all()
+                    if generation == self._generation:
+                        self._broken = True
+                logger.debug("the recorder pipe of %s broke: %s", self.path, exc)
+
+    def _close_stdin(self) -> None:
+        """Close the current process's pipe: it finishes the file (call with the lock held)."""
+        self._stdin_closed = True
+        stdin = self.process.stdin
+        if stdin is not None:
+            with contextlib.suppress(OSError):
+                stdin.close()
 
     @property
     def queued_bytes(self) -> int:
-        """Records handed to :meth:`write` and not yet in the pipe [bytes]."""
+        """Records handed to :meth:`write` and not yet acknowledged by the recorder [bytes]."""
         return self._queued
 
     @property
     def failed(self) -> str:
-        """Why records could not be handed over ("" while all is well)."""
+        """Why the recording cannot go on ("" while all is well)."""
         return self._failed
+
+    @property
+    def segments(self) -> list[Path]:
+        """The files of this recording so far, in order."""
+        return list(self._segments)
+
+    def report(self) -> RecordingReport:
+        """What happened to the recording (for the run's summary)."""
+        with self._changed:
+            return RecordingReport(
+                segments=[str(path) for path in self._segments],
+                failures=list(self._failures),
+                lost_records=self._lost_records,
+                lost_ticks=self._lost_ticks,
+                stopped_at_tick=self._stopped_at_tick,
+            )
 
     def close(self, timeout_s: float = DEFAULT_CLOSE_TIMEOUT_S) -> int | None:
         """End the stream; wait (bounded) for the file to be closed. Returns the exit status.
 
-        The records still queued are handed over first. Idempotent. A process that does not
-        finish in time is killed (the file is then recoverable with ``hilswarm recover``).
+        The records still queued are handed over first (to a restarted process if need be).
+        Idempotent. A process that does not finish in time is killed. Segments whose process
+        died are rewritten as complete files; a staged recording never published is removed.
         """
         deadline = time.monotonic() + timeout_s
         with self._changed:
             self._closing = True
             self._changed.notify_all()
-        self._writer.join(timeout=max(0.0, deadline - time.monotonic()))
-        if self._writer.is_alive():  # the recorder stopped reading: it cannot finish in time
-            logger.error(
-                "the recorder process of %s did not take its last %d bytes of records; killing it",
-                self.path,
-                self._queued,
-            )
-            self.process.kill()
-            self._writer.join(timeout=10)
-        stdin = self.process.stdin
-        if stdin is not None and not stdin.closed and not self._writer.is_alive():
-            with contextlib.suppress(OSError):
-                stdin.close()
-        try:
-            code = self.process.wait(timeout=max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
+            while not (self._finished or self._failed):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._changed.wait(min(remaining, 0.5))
+            finished = self._finished or self._failed
+        if not finished:
             logger.error("the recorder process of %s did not finish; killing it", self.path)
-            self.process.kill()
-            code = self.process.wait(timeout=10)
-        if self.process.stdout is not None:
-            self.process.stdout.close()
+            with self._changed:
+                self._max_restarts = self.restarts  # no restart of a process killed here
+            with contextlib.suppress(ProcessLookupError):
+                self.process.kill()
+        self._reader.join(timeout=max(1.0, deadline - time.monotonic()))
+        self._writer.join(timeout=1.0)
+        code = self.process.poll() if self._exit_code is None else self._exit_code
+        if code is None:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                code = self.process.wait(timeout=10)
         if code != 0:
-            logger.error("the recorder process of %s exited with status %s", self.path, code)
+            logger.error("the recorder process of %s %s", self.path, _signal_text(code))
+        if not self._published and self._staging is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self._staging.unlink()
+        else:
+            self._mend_dead_segments()
         return code
+
+    def _mend_dead_segments(self) -> None:
+        """Rewrite the segments whose process died as complete MCAP files (best effort)."""
+        from hilswarm.orchestrator.recover import recover  # noqa: PLC0415 - rare
+
+        for segment in self._dead_segments:
+            try:
+                recover(segment, in_place=True)
+            except (RecordingError, OSError) as exc:
+                logger.error(
+                    "%s could not be rewritten (%s): run `hilswarm recover %s`",
+                    segment,
+                    exc,
+                    segment,
+                )
+        self._dead_segments.clear()
 
     def __enter__(self) -> RecorderProcess:
         return self
@@ -318,47 +616,115 @@ class RecorderProcess:
         self.close()
 
 
-def _read_exactly(fd: int, size: int) -> bytes:
+# -- the process side ------------------------------------------------------------------------
+
+
+def _read_exactly(fd: int, size: int) -> bytes | None:
+    """``size`` bytes from ``fd``; ``None`` at the end of the stream before any of them.
+
+    Raises:
+        RecordingError: the stream ended inside the requested bytes.
+    """
     parts: list[bytes] = []
-    while size:
-        data = os.read(fd, size)
+    wanted = size
+    while wanted:
+        data = os.read(fd, wanted)
         if not data:
-            raise RecordingError("the record stream ended before its set-up message")
+            if wanted == size:
+                return None
+            raise RecordingError(f"the record stream ended {wanted} bytes short of a message")
         parts.append(data)
-        size -= len(data)
+        wanted -= len(data)
     return b"".join(parts)
 
 
-def record_stream(fd: int, ready: Any) -> int:
+class DiskFullError(RecordingError):
+    """The recording's disk (or quota) is full: a restarted recorder would fail too."""
+
+
+def _disk_full(path: Path, exc: BaseException) -> bool:
+    """True if ``exc`` (raised writing ``path``) comes from a full disk or quota."""
+    if isinstance(exc, OSError) and exc.errno in _NO_SPACE_ERRNOS:
+        return True
+    try:
+        return shutil.disk_usage(path.parent).free < 2 * DEFAULT_CHUNK_SIZE
+    except OSError:
+        return False
+
+
+def _say(out: IO[bytes], *words: bytes) -> None:
+    out.write(b" ".join(words) + b"\n")
+    out.flush()
+
+
+def record_stream(fd: int, out: IO[bytes], *, clock: Callable[[], float] = time.monotonic) -> int:
     """Record the stream on ``fd`` until it ends; returns the number of frames recorded.
 
     Args:
         fd: the read end of the manager's pipe.
-        ready: a binary stream to which ``ready`` is written once recording has begun.
+        out: a binary stream for ``ready`` (once recording has begun) and ``ack N`` (batch
+            ``N`` and all before it are on disk).
+        clock: monotonic clock [s] pacing the acknowledgements.
     """
-    (size,) = _LENGTH.unpack(_read_exactly(fd, _LENGTH.size))
-    setup = pickle.loads(_read_exactly(fd, size))  # our own parent process wrote it
+    head = _read_exactly(fd, _LENGTH.size)
+    if head is None:
+        raise RecordingError("the record stream ended before its set-up message")
+    (size,) = _LENGTH.unpack(head)
+    body = _read_exactly(fd, size)
+    if body is None:
+        raise RecordingError("the record stream ended before its set-up message")
+    setup = pickle.loads(body)  # our own parent process wrote it
+    path = Path(setup["path"])
+    try:
+        return _record(fd, out, setup, clock)
+    except (RecordingError, OSError, RuntimeError) as exc:
+        if _disk_full(path, exc):
+            raise DiskFullError(f"{path}: {exc}") from exc
+        raise
+
+
+def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], float]) -> int:
+    """:func:`record_stream` after the set-up message."""
     experiment: Experiment = setup["experiment"]
     log_time_ns: int = setup["log_time_ns"]
+    path = Path(setup["path"])
     with Recorder(
-        setup["path"],
+        path,
         experiment,
         chunk_size=setup["chunk_size"],
         compression=setup.get("compression", DEFAULT_COMPRESSION),
         log_time_ns=log_time_ns,
     ) as recorder:
         record_vehicles(recorder, experiment, log_time_ns=log_time_ns)
-        ready.write(_READY)
-        ready.flush()
+        recorder.flush()
+        _say(out, _READY)
         frames = FrameRecorder(recorder, experiment)
         reader = FrameReader()
         started = time.perf_counter()
         cpu_started = time.process_time()
+        last_seq = acked = -1
+        next_ack = clock() + ACK_PERIOD_S
         while True:
-            data = os.read(fd, PIPE_SIZE)
-            if not data:
+            if last_seq > acked and not reader.pending:
+                # acknowledge when due, or at once when the manager has nothing more now
+                wait_s = max(0.0, next_ack - clock())
+                if not select.select([fd], [], [], wait_s)[0]:
+                    recorder.flush()
+                    _say(out, _ACK, str(last_seq).encode())
+                    acked = last_seq
+                    next_ack = clock() + ACK_PERIOD_S
+            head = _read_exactly(fd, _BATCH.size)
+            if head is None:
                 break
+            seq, length = _BATCH.unpack(head)
+            data = _read_exactly(fd, length) or b""
             frames.apply_all(reader.feed(data))
+            last_seq = seq
+            if not reader.pending and clock() >= next_ack:
+                recorder.flush()
+                _say(out, _ACK, str(seq).encode())
+                acked = seq
+                next_ack = clock() + ACK_PERIOD_S
         if reader.pending:
             logger.error("record stream ended inside a frame (%d bytes lost)", reader.pending)
         logger.info(
@@ -368,8 +734,10 @@ def record_stream(fd: int, ready: Any) -> int:
             recorder.message_count,
             time.perf_counter() - started,
             time.process_time() - cpu_started,
-            setup["path"],
+            path,
         )
+    if last_seq > acked:
+        _say(out, _ACK, str(last_seq).encode())
     return frames.frames
 
 
@@ -386,10 +754,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.nice(RECORDER_NICE)
     except OSError as exc:
         logger.warning("could not lower the recorder's CPU priority: %s", exc)
+    out = sys.stdout.buffer
     try:
-        record_stream(sys.stdin.fileno(), sys.stdout.buffer)
-    except (RecordingError, OSError, pickle.UnpicklingError, EOFError) as exc:
+        record_stream(sys.stdin.fileno(), out)
+    except DiskFullError as exc:
+        logger.error("disk full: %s", exc)
+        with contextlib.suppress(OSError):
+            _say(out, _ERROR, b"nospace", str(exc).encode(errors="replace"))
+        return EXIT_NO_SPACE
+    except (RecordingError, OSError, RuntimeError, pickle.UnpicklingError, EOFError) as exc:
         logger.error("%s", exc)
+        with contextlib.suppress(OSError):
+            _say(out, _ERROR, str(exc).encode(errors="replace"))
         return 1
     return 0
 

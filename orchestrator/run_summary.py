@@ -1,4 +1,4 @@
-"""What one run did: ticks, wall time, speed, completion times, late and lost agents."""
+"""What one run did: ticks, wall time, speed, completion times, and every degradation."""
 
 from __future__ import annotations
 
@@ -6,6 +6,45 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+
+@dataclass
+class AgentEvent:
+    """An agent's state change the outcome depends on (safe mode, loss, degraded link).
+
+    Attributes:
+        tick: the tick at which it happened (the agent's own tick for its reports).
+        detail: the reason, as reported.
+    """
+
+    tick: int
+    detail: str = ""
+
+
+@dataclass
+class RecordingReport:
+    """What happened to the recording of a run (filled in by the recorder's owner).
+
+    Attributes:
+        segments: the files of the recording, in order (``run.mcap``, ``run.1.mcap``, ...).
+        failures: one line per failure of the recorder process (died, disk full), with the
+            tick it happened at.
+        lost_records: manager records (messages of the bus) that never reached a file.
+        lost_ticks: ``(first, last)`` tick range of the lost records (``None``: none lost).
+        stopped_at_tick: the recording ended early at this tick (disk full, policy
+            ``continue``; ``None``: it covers the whole run).
+    """
+
+    segments: list[str] = field(default_factory=list)
+    failures: list[str] = field(default_factory=list)
+    lost_records: int = 0
+    lost_ticks: tuple[int, int] | None = None
+    stopped_at_tick: int | None = None
+
+    @property
+    def complete(self) -> bool:
+        """True when every record of the run is in the files."""
+        return not self.lost_records and self.stopped_at_tick is None
 
 
 @dataclass
@@ -20,11 +59,20 @@ class RunSummary:
         wall_s: wall-clock length of the ticking phase [s].
         stop_reason: why the run ended (``"completed"``, ``"interrupted"``, ...).
         lost: agents lost (killed, hung), in order of loss.
+        lost_at: per lost agent, the tick of the loss and its reason.
+        safe: per agent, its first entry into safe mode (tick and reason).
+        degraded: per agent, its entries into the ``degraded`` state (link fault).
+        counters: per agent, the latest counters its status reports (e.g. ``malformed``,
+            ``dropped``, ``missed`` messages/ticks), when it reports any.
         late: late answers per agent (realtime).
         late_ticks: ticks not complete by the next tick's deadline (realtime).
+        max_late_fraction: late ticks above this fraction of the planned ticks degrade the
+            outcome.
         completion_s: per tick, completion time after its scheduled time [s].
+        estop_tick: the tick of a swarm-wide e-stop (``None``: none).
         failed: True when the run could not do what was asked (lost agent with policy stop,
             start-up failure).
+        recording: what happened to the recording (``None``: not recorded).
     """
 
     experiment: str
@@ -34,10 +82,17 @@ class RunSummary:
     wall_s: float = 0.0
     stop_reason: str = ""
     lost: list[str] = field(default_factory=list)
+    lost_at: dict[str, AgentEvent] = field(default_factory=dict)
+    safe: dict[str, AgentEvent] = field(default_factory=dict)
+    degraded: dict[str, list[AgentEvent]] = field(default_factory=dict)
+    counters: dict[str, dict[str, int]] = field(default_factory=dict)
     late: dict[str, int] = field(default_factory=dict)
     late_ticks: int = 0
+    max_late_fraction: float = 0.01
     completion_s: list[float] = field(default_factory=list)
+    estop_tick: int | None = None
     failed: bool = False
+    recording: RecordingReport | None = None
 
     @property
     def speed(self) -> float:
@@ -59,7 +114,7 @@ class RunSummary:
         return float(p50), float(p99)
 
     def text(self) -> str:
-        """A few human lines."""
+        """A few human lines (the degradations are listed by :mod:`.outcome`)."""
         p50, p99 = self.completion_percentiles()
         lines = [
             f"experiment {self.experiment!r} ({self.mode}): {self.ticks}/{self.planned_ticks} "
@@ -67,11 +122,6 @@ class RunSummary:
             f"stopped: {self.stop_reason}",
             f"tick completion p50 {_ms(p50)}, p99 {_ms(p99)}; late ticks {self.late_ticks}",
         ]
-        late = {name: n for name, n in self.late.items() if n}
-        if late:
-            lines.append("late answers: " + ", ".join(f"{n}={c}" for n, c in late.items()))
-        if self.lost:
-            lines.append("lost agents: " + ", ".join(self.lost))
         return "\n".join(lines)
 
 

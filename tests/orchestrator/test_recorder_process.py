@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hilswarm.agents import bus
-from hilswarm.agents.mcap_io import iter_messages, recover
+from hilswarm.agents.errors import RecordingError
+from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
 from hilswarm.orchestrator.record_stream import (
     FrameReader,
@@ -268,28 +269,90 @@ def test_write_waits_beyond_the_bound_and_says_so_once(
     assert y_count(path) == ticks
 
 
-def test_a_killed_recorder_does_not_stop_the_run(tmp_path: Path, experiment: Experiment):
+def leader_ticks(path: Path) -> list[int]:
+    return [m["k"] for topic, _, m in iter_messages(path) if topic == "/leader/y"]
+
+
+def test_a_killed_recorder_is_restarted_into_the_next_segment(
+    tmp_path: Path, experiment: Experiment
+) -> None:
+    """kill -9 of the recorder: a new process continues in run.1.mcap, nothing lost or doubled,
+    and the dead segment is rewritten as a complete file."""
     path = tmp_path / "run.mcap"
-    recorder = RecorderProcess(path, experiment, log_time_ns=T0, queue_bytes=64 * 1024)
+    recorder = RecorderProcess(path, experiment, log_time_ns=T0)
+    first_pid = 0
     try:
         recorder.wait_ready()
+        first_pid = recorder.process.pid
         for k in range(0, 2000, 50):
-            recorder.write(frames_of_ticks(experiment, range(k, k + 50)))
-        assert wait_until(lambda: recorder.queued_bytes == 0)
+            recorder.write(frames_of_ticks(experiment, range(k, k + 50)), count=200, tick=k)
+        assert wait_until(lambda: recorder.bytes_written > 0)  # some of it on disk
+        os.killpg(first_pid, signal.SIGKILL)  # whatever it had not acknowledged is sent again
+        for k in range(2000, 4000, 50):
+            recorder.write(frames_of_ticks(experiment, range(k, k + 50)), count=200, tick=k)
+        assert wait_until(lambda: recorder.restarts == 1)
+    finally:
+        assert recorder.close() == 0
+    assert recorder.process.pid != first_pid and not recorder.failed
+    segments = [path, tmp_path / "run.1.mcap"]
+    assert recorder.segments == segments
+    report = recorder.report()
+    assert report.complete and report.lost_records == 0
+    assert "killed by SIGKILL" in report.failures[0] and "run.1.mcap" in report.failures[0]
+    first, second = (leader_ticks(segment) for segment in segments)
+    assert first + second == list(range(4000))  # every tick once, in order
+    for segment in segments:  # both complete files, each with the run's start
+        assert y_count(segment) == len(leader_ticks(segment))
+        assert next(iter_messages(segment))[0] == "/experiment"
+
+
+def test_a_recorder_that_keeps_dying_is_given_up_and_the_loss_counted(
+    tmp_path: Path, experiment: Experiment
+) -> None:
+    path = tmp_path / "run.mcap"
+    failures: list[str] = []
+    recorder = RecorderProcess(
+        path, experiment, log_time_ns=T0, max_restarts=0, on_failure=failures.append
+    )
+    try:
+        recorder.wait_ready()
+        recorder.write(frames_of_ticks(experiment, range(0, 50)), count=200, tick=0)
+        assert wait_until(lambda: recorder.queued_bytes == 0)  # acknowledged: on disk
         os.killpg(recorder.process.pid, signal.SIGKILL)
-        # writes go on returning (the pipe breaks, the queue is let go) until it is noticed
-        for k in range(2000, 40000, 50):
-            recorder.write(frames_of_ticks(experiment, range(k, k + 50)))
-            if recorder.failed:
-                break
         assert wait_until(lambda: bool(recorder.failed))
-        recorder.write(frames_of_ticks(experiment, range(5)))  # after the failure: returns
+        recorder.write(frames_of_ticks(experiment, range(50, 60)), count=40, tick=50)
     finally:
         assert recorder.close() == -signal.SIGKILL
-    recovered = tmp_path / "recovered.mcap"
-    assert recover(path, recovered) > 0
-    ks = [m["k"] for topic, _, m in iter_messages(recovered) if topic == "/leader/y"]
-    assert ks == list(range(len(ks)))
+    assert failures == [recorder.failed] and "restarts used up" in failures[0]
+    report = recorder.report()
+    assert report.lost_records == 40 and report.lost_ticks == (50, 50)
+    assert report.stopped_at_tick == 0 and not report.complete
+    assert leader_ticks(path) == list(range(50))  # the dead file was rewritten, complete
+    assert y_count(path) == 50
+
+
+def test_a_staged_recording_is_published_or_removed(tmp_path: Path, experiment: Experiment):
+    kept = tmp_path / "kept.mcap"
+    kept.write_bytes(b"an older recording")
+    recorder = RecorderProcess(kept, experiment, log_time_ns=T0, staged=True)
+    try:
+        recorder.wait_ready()
+        with pytest.raises(RecordingError, match="exists"):
+            recorder.publish()
+    finally:
+        recorder.close()
+    assert kept.read_bytes() == b"an older recording"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.mcap"]  # no file left
+    fresh = tmp_path / "fresh.mcap"
+    recorder = RecorderProcess(fresh, experiment, log_time_ns=T0, staged=True)
+    try:
+        recorder.wait_ready()
+        recorder.publish()
+        recorder.write(frames_of_ticks(experiment, range(5)))
+    finally:
+        assert recorder.close() == 0
+    assert leader_ticks(fresh) == list(range(5))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh.mcap", "kept.mcap"]
 
 
 def test_y_frames_of_one_length_with_other_layouts(tmp_path: Path, experiment: Experiment):

@@ -1,0 +1,175 @@
+"""The outcome of a run: its exit status and every degradation, with counts and ticks.
+
+``hilswarm run`` exits with
+
+* ``0`` — clean: every planned tick ran (or the run was stopped on request), no agent went
+  safe or was lost, no tick was missed, late ticks at most ``max_late_fraction`` of the
+  planned ticks, and the recording holds everything;
+* ``3`` — completed but degraded: an agent went safe, was lost or reported a degraded link,
+  ticks were missed, late ticks above ``max_late_fraction``, an e-stop, or the recording is
+  incomplete or was split after a recorder failure;
+* ``1`` — failed: the run could not do what was asked (an agent lost with
+  ``on_agent_loss = "stop"``, an agent safe with ``on_agent_safe = "stop"``, an agent safe from
+  its first tick, no tick completed, a start-up failure);
+* ``2`` — bad input (the experiment file, command-line options; decided before the run);
+* ``130`` — interrupted (Ctrl-C).
+
+:func:`decide` is pure: it reads a :class:`~hilswarm.orchestrator.run_summary.RunSummary`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from hilswarm.orchestrator.run_summary import RunSummary
+
+CLEAN = 0
+FAILED = 1
+BAD_INPUT = 2
+DEGRADED = 3
+INTERRUPTED = 130
+
+#: Agent status counters listed in the summary when non-zero (reported by the agents).
+COUNTER_NAMES = ("malformed", "dropped", "missed")
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """The exit status of a run and why.
+
+    Attributes:
+        code: the exit status (:data:`CLEAN`, :data:`DEGRADED`, :data:`FAILED`,
+            :data:`INTERRUPTED`).
+        failures: why the run failed (empty unless ``code`` is :data:`FAILED`).
+        degradations: every degradation, one line each, with counts and ticks.
+        notes: facts worth knowing that do not degrade the run.
+    """
+
+    code: int
+    failures: list[str] = field(default_factory=list)
+    degradations: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def word(self) -> str:
+        """``clean``, ``degraded``, ``failed`` or ``interrupted``."""
+        return {CLEAN: "clean", DEGRADED: "degraded", INTERRUPTED: "interrupted"}.get(
+            self.code, "failed"
+        )
+
+    def text(self) -> str:
+        """The outcome lines of the end-of-run summary."""
+        lines = [f"outcome: {self.word} (exit status {self.code})"]
+        lines += [f"  failed: {line}" for line in self.failures]
+        lines += [f"  degraded: {line}" for line in self.degradations]
+        lines += [f"  note: {line}" for line in self.notes]
+        return "\n".join(lines)
+
+
+def _ticks(first: int, last: int) -> str:
+    return f"tick {first}" if first == last else f"ticks {first}..{last}"
+
+
+def decide(
+    summary: RunSummary | None,
+    *,
+    error: str = "",
+    interrupted: bool = False,
+) -> Outcome:
+    """The outcome of a run from its summary (``None``: it never started ticking).
+
+    Args:
+        summary: what the run did.
+        error: a failure that ended the run (start-up failure, lost bus, ...).
+        interrupted: the run was interrupted by Ctrl-C.
+    """
+    failures: list[str] = [error] if error else []
+    degradations: list[str] = []
+    notes: list[str] = []
+    if summary is None:
+        if not failures:
+            failures.append("the run did not start")
+        return Outcome(INTERRUPTED if interrupted else FAILED, failures)
+    last_tick = max(summary.ticks + summary.late_ticks - 1, 0)
+    if summary.failed:
+        failures.append(summary.stop_reason)
+    for name, event in summary.safe.items():
+        line = f"agent {name} safe from tick {event.tick}: {event.detail or 'no reason given'}"
+        if event.tick <= 0:
+            failures.append(f"{line} (safe from its first tick)")
+        else:
+            degradations.append(line)
+    for name in summary.lost:
+        event = summary.lost_at.get(name)
+        if event is None:
+            degradations.append(f"agent {name} lost")
+            continue
+        missed = max(summary.planned_ticks - event.tick, 0)
+        end = min(summary.planned_ticks - 1, max(last_tick, event.tick))
+        degradations.append(
+            f"agent {name} lost at tick {event.tick}: {event.detail}; "
+            f"{missed} ticks missed ({_ticks(event.tick, end)})"
+            if missed
+            else f"agent {name} lost at tick {event.tick}: {event.detail}"
+        )
+    for name, events in summary.degraded.items():
+        ticks = ", ".join(str(event.tick) for event in events[:10])
+        more = f" and {len(events) - 10} more" if len(events) > 10 else ""
+        degradations.append(
+            f"agent {name} degraded {len(events)} times (ticks {ticks}{more}): "
+            f"{events[-1].detail or 'link fault'}"
+        )
+    for name, counters in summary.counters.items():
+        shown = {key: counters[key] for key in COUNTER_NAMES if counters.get(key)}
+        if shown:
+            degradations.append(
+                f"agent {name}: "
+                + ", ".join(f"{count} {key}" for key, count in shown.items())
+                + (" messages" if "missed" not in shown else "")
+            )
+    late = {name: count for name, count in summary.late.items() if count}
+    if summary.late_ticks:
+        planned = max(summary.planned_ticks, 1)
+        fraction = summary.late_ticks / planned
+        line = (
+            f"{summary.late_ticks} of {summary.planned_ticks} ticks late ({fraction:.1%}, "
+            f"max_late_fraction {summary.max_late_fraction:.1%}); late answers: "
+            + ", ".join(f"{name}={count}" for name, count in late.items())
+        )
+        if fraction > summary.max_late_fraction:
+            degradations.append(line)
+        else:
+            notes.append(line)
+    if summary.estop_tick is not None:
+        degradations.append(f"e-stop at tick {summary.estop_tick}")
+    recording = summary.recording
+    if recording is not None:
+        degradations += [f"recording: {line}" for line in recording.failures]
+        if recording.lost_records:
+            span = f" ({_ticks(*recording.lost_ticks)})" if recording.lost_ticks else ""
+            degradations.append(f"recording: {recording.lost_records} records lost{span}")
+        if recording.stopped_at_tick is not None:
+            degradations.append(
+                f"recording: stopped at tick {recording.stopped_at_tick}; "
+                f"ticks {recording.stopped_at_tick}..{last_tick} are not recorded"
+            )
+        if len(recording.segments) > 1:
+            notes.append("recording in segments: " + ", ".join(recording.segments))
+    complete = summary.stop_reason == "completed" or summary.stop_reason.startswith(
+        "stop requested"
+    )
+    if summary.ticks == 0 and summary.planned_ticks > 0 and not interrupted:
+        failures.append("no tick completed")
+    elif not complete and not failures and not interrupted and summary.estop_tick is None:
+        degradations.append(
+            f"stopped at tick {last_tick} of {summary.planned_ticks}: {summary.stop_reason}"
+        )
+    if interrupted:
+        code = INTERRUPTED
+    elif failures:
+        code = FAILED
+    elif degradations:
+        code = DEGRADED
+    else:
+        code = CLEAN
+    return Outcome(code, failures, degradations, notes)
