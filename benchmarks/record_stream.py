@@ -14,8 +14,16 @@ write to the OS, file closed), messages/s, and the ratio against a baseline meas
 same process: the plain ``mcap`` ``Writer`` (zstd, same chunk size) fed ``json.dumps`` of the
 same message dicts (built beforehand, so the baseline does no frame decoding at all).
 
+Writer alone (the issue's target): CPU [µs] per message of foxglove-sdk's MCAP writer (what
+records every run) against the hand-written chunk writer hilswarm had before
+(``benchmarks/baseline_chunk_writer.py``), both fed the same ready JSON messages on 48
+channels, zstd level 1, 32 KiB chunks; target: at most 1.5x the baseline.
+
+Real time: the real recorder process fed 64 agents at 100 Hz, paced (a batch every 20 ms, as
+the manager does): every message must be in the file (0 dropped), with the recorder's CPU.
+
     python benchmarks/record_stream.py            # 8 and 32 agents, every compression
-    python benchmarks/record_stream.py --short    # < 30 s
+    python benchmarks/record_stream.py --short    # < 60 s
     python benchmarks/record_stream.py --profile  # cProfile of the recorder path (8 agents)
 """
 
@@ -29,6 +37,8 @@ import math
 import os
 import pstats
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -44,6 +54,9 @@ from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from baseline_chunk_writer import ChunkedMcapWriter
 
 T0 = 1_800_000_000_000_000_000  # a log time [ns, Unix epoch]
 RATE_HZ = 100.0
@@ -250,6 +263,78 @@ def run_baseline(messages: list[tuple[str, int, dict[str, Any]]], path: Path) ->
     return _cpu_s() - start
 
 
+def writer_only(path: Path, n: int, *, foxglove_writer: bool) -> float:
+    """CPU [µs] per message of the MCAP writer alone on ``n`` ready JSON messages."""
+    channels = 48
+    data = [
+        json.dumps({"k": i, "t": i * 0.01, "values": [0.1 * i, 1.0 / (i + 1), math.pi]}).encode()
+        for i in range(1000)
+    ]
+    if foxglove_writer:
+        from hilswarm.agents.mcap_io import McapJsonWriter  # noqa: PLC0415
+
+        writer = McapJsonWriter(path)
+        for c in range(channels):
+            writer.add_topic(f"/a{c}/y")
+        logs = [writer._topics[f"/a{c}/y"].log for c in range(channels)]
+        start = _cpu_s()
+        for j in range(n):
+            logs[j % channels](data[j % 1000], T0 + j)
+        writer.close()
+        return 1e6 * (_cpu_s() - start) / n
+    with open(path, "wb", buffering=0) as raw:
+        hand = ChunkedMcapWriter(raw, chunk_size=DEFAULT_CHUNK_SIZE, compression="zstd")
+        ids = []
+        for c in range(channels):
+            schema = hand.register_schema(f"/a{c}/y", "jsonschema", b'{"type":"object"}')
+            ids.append(hand.register_channel(f"/a{c}/y", "json", schema))
+        start = _cpu_s()
+        for j in range(n):
+            hand.add_message(ids[j % channels], data[j % 1000], T0 + j, T0 + j)
+        hand.finish()
+        return 1e6 * (_cpu_s() - start) / n
+
+
+def realtime_process(folder: Path, n: int, ticks: int) -> str:
+    """The real recorder process fed ``n`` agents at :data:`RATE_HZ`, paced; a result line."""
+    experiment = frisbee_experiment(folder, n)
+    batches, messages = build_frames(n, ticks)
+    path = folder / f"realtime-{n}.mcap"
+    children = _reaped_children_cpu_s()
+    process = RecorderProcess(path, experiment, log_time_ns=T0)
+    period = BATCH_TICKS / RATE_HZ
+    try:
+        process.wait_ready()
+        start_up = _child_cpu_s(process.process.pid)
+        start = time.perf_counter()
+        for i, batch in enumerate(batches):
+            delay = start + i * period - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            process.write(batch)
+        wall = time.perf_counter() - start
+        backlog = process.queued_bytes
+    finally:
+        code = process.close()
+    cpu = _reaped_children_cpu_s() - children - start_up
+    with path.open("rb") as handle:
+        summary = make_reader(handle).get_summary()
+    if summary is None or summary.statistics is None:
+        raise SystemExit(f"{path}: no summary")
+    counts = summary.statistics.channel_message_counts
+    recorded = sum(
+        counts.get(channel.id, 0)
+        for channel in summary.channels.values()
+        if channel.topic != "/experiment" and not channel.topic.endswith("/calibration")
+    )
+    return (
+        f"{n} agents at {RATE_HZ:g} Hz for {ticks / RATE_HZ:g} s (paced, {wall:.2f} s): "
+        f"{len(messages)} messages, {len(messages) - recorded} dropped, recorder exit {code}; "
+        f"recorder CPU {1e6 * cpu / len(messages):.2f} µs/msg ({100 * cpu / wall:.0f} % of a "
+        f"core); not yet acknowledged when the feed ended: {backlog / 1024:.0f} KiB"
+    )
+
+
 def check_file(path: Path, expected: int) -> None:
     """The file is complete (summary, statistics) and holds the messages of the run."""
     with path.open("rb") as handle:
@@ -295,6 +380,20 @@ def main() -> None:
             pstats.Stats(profiler, stream=out).sort_stats("tottime").print_stats(25)
             print(out.getvalue())
             return
+        load = subprocess.run(["uptime"], capture_output=True, text=True, check=False).stdout
+        print(f"machine: {os.cpu_count()} cores; uptime: {load.strip()}")
+        n_writer = 50_000 if args.short else 200_000
+        fox = min(writer_only(folder / "fox.mcap", n_writer, foxglove_writer=True)
+                  for _ in range(repeats))  # fmt: skip
+        hand = min(writer_only(folder / "hand.mcap", n_writer, foxglove_writer=False)
+                   for _ in range(repeats))  # fmt: skip
+        verdict = "ok" if fox <= 1.5 * hand else "ABOVE TARGET"
+        print(
+            f"writer alone, {n_writer} JSON messages on 48 channels: foxglove-sdk {fox:.2f} µs/msg"
+            f", baseline hand-written writer {hand:.2f} µs/msg: ratio {fox / hand:.2f} "
+            f"(target <= 1.5: {verdict})"
+        )
+        print(realtime_process(folder, 64, 200 if args.short else 1000))
         print(
             f"{ticks} ticks at {RATE_HZ:g} Hz, writes of {BATCH_TICKS} ticks, telemetry every "
             f"{TELEMETRY_TICKS} ticks, chunks of {DEFAULT_CHUNK_SIZE // 1024} KiB; "

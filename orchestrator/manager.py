@@ -171,6 +171,7 @@ class InstanceManager:
         self.alive: set[str] = set()
         self.lost: set[int] = set()
         self._stop_reason = ""
+        self._stopping = False
         self._paused = False
         self._reanchor = False
         self._estop_tick: int | None = None
@@ -322,7 +323,7 @@ class InstanceManager:
         except (TypeError, ValueError):
             k = 0
         detail = str(message.get("detail", ""))
-        if state == "safe" and name not in summary.safe:
+        if state == "safe" and name not in summary.safe and not self._stopping:
             summary.safe[name] = AgentEvent(k, detail)
         elif state == "degraded" and message.get("kind", "transition") == "transition":
             summary.degraded.setdefault(name, []).append(AgentEvent(k, detail))
@@ -737,6 +738,8 @@ class InstanceManager:
 
     def _stop_agents(self, k: int) -> None:
         """Every agent to safe mode and stopped; wait (bounded) for their tokens to go."""
+        with self._lock:
+            self._stopping = True  # safe states from here on are the stop's, not faults
         self._publish_state("stopping", self._stop_reason)
         self._record_event(ORCHESTRATOR, "stopping", k=k, detail=self._stop_reason)
         self._control_pub.put(bus.encode_control(bus.ControlCommand.STOP, reason=self._stop_reason))

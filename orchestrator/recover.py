@@ -11,12 +11,17 @@ MCAP reader and Foxglove open.
 from __future__ import annotations
 
 import os
+import shutil
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from hilswarm.agents import mcap_io
-from hilswarm.agents.errors import RecordingError
+from hilswarm.agents.errors import HilswarmError, RecordingError
+
+#: A write failure with less free space than this on the destination's disk is a full disk
+#: [bytes].
+MIN_FREE_BYTES = 1 << 20
 
 #: The 8 bytes every MCAP file starts with.
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -41,6 +46,18 @@ class RecoveryResult:
     topics: dict[str, int] = field(default_factory=dict)
     source_bytes: int = 0
     destination_bytes: int = 0
+
+
+class NoSpaceError(HilswarmError, OSError):
+    """The recovered file does not fit on its disk (``hilswarm recover`` exits 1)."""
+
+
+def _free_bytes(path: Path) -> int | None:
+    """Free space on the disk of ``path``'s folder [bytes] (``None``: unknown)."""
+    try:
+        return shutil.disk_usage(path.parent).free
+    except OSError:
+        return None
 
 
 def default_destination(source: Path) -> Path:
@@ -79,8 +96,10 @@ def recover(
         The counts of what was kept.
 
     Raises:
-        RecordingError: ``source`` is missing or not MCAP, ``destination`` is ``source``, or
-            ``in_place`` is combined with a destination.
+        RecordingError: ``source`` is missing or not MCAP, ``destination`` is ``source``,
+            ``in_place`` is combined with a destination, or the destination cannot be written
+            (nothing of the destination is left behind).
+        NoSpaceError: the destination's disk is full.
     """
     source = Path(source)
     check_mcap_magic(source)
@@ -93,7 +112,16 @@ def recover(
     if target.resolve() == source.resolve():
         raise RecordingError(f"the destination {target} is the source; use in_place to replace it")
     source_bytes = source.stat().st_size
-    mcap_io.recover(source, target)
+    try:
+        mcap_io.recover(source, target)  # removes what it wrote of target when it fails
+    except RecordingError as exc:
+        free = _free_bytes(target)
+        if free is not None and free < max(source_bytes, MIN_FREE_BYTES):
+            raise NoSpaceError(
+                f"no space left to write {target} ({free} bytes free, the recording has "
+                f"{source_bytes}): free some space or write elsewhere with -o"
+            ) from exc
+        raise
     topics = Counter(topic for topic, _, _ in mcap_io.iter_messages(target))
     if in_place:
         os.replace(target, source)

@@ -7,9 +7,13 @@ Example::
     hilswarm run graphs/consensus_ring.toml --out out/ring.mcap --duration 5
 
 Ctrl-C (or ``hilswarm stop EXP`` from another terminal) brings every agent to safe mode, stops
-it, and closes the recording properly. Exit status: 0 completed or stopped on request, 1 the
-run failed (an agent lost with ``on_agent_loss = "stop"``, start-up failure), 2 bad input,
-130 interrupted by Ctrl-C.
+it, and closes the recording properly. The exit status tells the truth about the run (see
+:mod:`hilswarm.orchestrator.outcome` and :data:`EXIT_STATUS_HELP`); the end-of-run summary lists
+every degradation with counts and ticks.
+
+``--out`` never replaces an existing recording unless ``--force`` is given, and a run that
+fails before its first tick leaves no file: the recording is written under a hidden name and
+takes its name when the first tick is sent.
 """
 
 from __future__ import annotations
@@ -22,8 +26,10 @@ import time
 from pathlib import Path
 from types import FrameType
 
+import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.errors import RecordingError
+from hilswarm.orchestrator import outcome
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
@@ -34,18 +40,46 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
-from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.recorder_process import RecorderProcess, existing_segments
 from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay
 
 HELP = "run an experiment file (one process per agent, recorded to MCAP)"
 
+EXIT_STATUS_HELP = """\
+exit status:
+  0    clean: every tick ran (or the run was stopped on request), nothing degraded
+  3    completed but degraded: an agent went safe, was lost or had link faults, ticks
+       were missed, late ticks above max_late_fraction (default 1 %), an e-stop, or the
+       recording is incomplete or split after a recorder failure (see the summary)
+  1    failed: an agent lost with on_agent_loss = "stop", safe with on_agent_safe =
+       "stop", safe from its first tick, no tick completed, or a start-up failure
+  2    bad input (experiment file, options, --out exists without --force)
+  130  interrupted (Ctrl-C)
+
+If the recorder process dies it is restarted and the recording continues in the next
+segment (run.1.mcap, run.2.mcap, ...). A full disk: on_recording_failure = "stop"
+(default: robots safe, the run stops, exit 3) or "continue" (the run goes on unrecorded).
+"""
+#: ``on_recording_failure`` when the experiment does not set it.
+DEFAULT_ON_RECORDING_FAILURE = "stop"
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``hilswarm run``."""
+    parser.epilog = EXIT_STATUS_HELP
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("file", type=Path, help="experiment file (TOML)")
     parser.add_argument(
-        "--out", type=Path, default=None, help="MCAP file (default out/<exp>-<timestamp>.mcap)"
+        "--out",
+        type=Path,
+        default=None,
+        help="MCAP file (default out/<exp>-<timestamp>.mcap); never replaced without --force",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --out recording (and its segments run.N.mcap)",
     )
     add_override_arguments(parser)
     parser.add_argument(
@@ -90,12 +124,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def default_output(experiment: Experiment, now: datetime.datetime) -> Path:
-    """``out/<exp>-<YYYYmmdd-HHMMSS>.mcap``."""
-    return Path("out") / f"{experiment.name}-{now:%Y%m%d-%H%M%S}.mcap"
+    """``out/<exp>-<YYYYmmdd-HHMMSS>.mcap`` (``-2``, ``-3``, ... when that name is taken)."""
+    base = Path("out") / f"{experiment.name}-{now:%Y%m%d-%H%M%S}.mcap"
+    candidate, n = base, 1
+    while existing_segments(candidate):
+        n += 1
+        candidate = base.with_name(f"{base.stem}-{n}{base.suffix}")
+    return candidate
+
+
+def on_recording_failure(experiment: Experiment) -> str:
+    """The experiment's ``on_recording_failure`` policy (``"stop"`` or ``"continue"``)."""
+    # read defensively: the key comes with the experiment schema
+    return str(getattr(experiment, "on_recording_failure", DEFAULT_ON_RECORDING_FAILURE))
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the experiment; see the module docstring for the exit status."""
+    """Run the experiment; see :data:`EXIT_STATUS_HELP` for the exit status."""
     overrides = overrides_from_args(args)
     if args.no_check:
         experiment = load_experiment(args.file, overrides=overrides)
@@ -104,11 +149,31 @@ def run(args: argparse.Namespace) -> int:
     unknown = [name for name in args.remote if name not in experiment.agent_names]
     if unknown:
         print(f"hilswarm run: --remote names unknown agents: {', '.join(unknown)}", file=sys.stderr)
-        return 2
+        return outcome.BAD_INPUT
     out = args.out or default_output(experiment, datetime.datetime.now())
+    taken = existing_segments(out)
+    if taken and not args.force:
+        names = ", ".join(str(path) for path in taken)
+        print(
+            f"hilswarm run: {names} exists; it is not replaced: choose another --out or pass "
+            "--force",
+            file=sys.stderr,
+        )
+        return outcome.BAD_INPUT
     endpoints = list(args.connect) or [bus.loopback_endpoint(args.port)]
     display = StatusDisplay(sys.stdout)
-    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
+    policy = on_recording_failure(experiment)
+    manager: InstanceManager | None = None
+
+    def recording_failed(reason: str) -> None:
+        display.log(f"recording failed: {reason}")
+        if policy == "stop" and manager is not None:
+            manager.request_stop(f"recording failed ({reason}); on_recording_failure = stop")
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    recorder = RecorderProcess(
+        out, experiment, log_time_ns=time.time_ns(), staged=True, on_failure=recording_failed
+    )
     launcher = AgentLauncher(
         endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
     )
@@ -146,23 +211,25 @@ def run(args: argparse.Namespace) -> int:
         )
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
+        recorder.publish(replace=args.force)  # the run begins: the recording takes its name
         summary = manager.run()
-    except (ManagerError, AgentProcessError, RecordingError) as exc:
+    except (ManagerError, AgentProcessError, RecordingError, zenoh.ZError) as exc:
         error = str(exc)
     finally:
         display.finish()
         launcher.stop()
         manager.close()
-        if recorder.close() != 0 and not error:
-            error = f"the recording {out} is incomplete (see the recorder's log above)"
+        recorder.close()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
-    print(f"recording: {out}")
     if summary is not None:
+        summary.recording = recorder.report()
+        print("recording: " + ", ".join(summary.recording.segments))
         print(summary.text())
+    else:
+        print(f"recording: none ({out} not written: the run did not begin)")
+    result = outcome.decide(summary, error=error, interrupted=interrupted)
+    print(result.text())
     if error:
         print(f"hilswarm run: {error}", file=sys.stderr)
-        return 130 if interrupted else 1
-    if interrupted:
-        return 130
-    return 1 if summary is None or summary.failed else 0
+    return result.code

@@ -1,0 +1,75 @@
+"""The outcome of a run (exit status and degradations) from its summary: pure decisions."""
+
+from __future__ import annotations
+
+from hilswarm.orchestrator.outcome import CLEAN, DEGRADED, FAILED, INTERRUPTED, decide
+from hilswarm.orchestrator.run_summary import AgentEvent, RecordingReport, RunSummary
+
+
+def summary(**changes: object) -> RunSummary:
+    base = RunSummary(experiment="toy", mode="realtime", ticks=400, planned_ticks=400,
+                      stop_reason="completed", late={"a": 0, "b": 0})  # fmt: skip
+    for key, value in changes.items():
+        setattr(base, key, value)
+    return base
+
+
+def test_a_clean_run_exits_0() -> None:
+    result = decide(summary())
+    assert result.code == CLEAN and not result.degradations and not result.failures
+    assert decide(summary(stop_reason="stop requested: done", ticks=120)).code == CLEAN
+
+
+def test_every_degradation_is_listed_with_counts_and_ticks() -> None:
+    result = decide(
+        summary(
+            safe={"a": AgentEvent(37, "battery low")},
+            lost=["b"],
+            lost_at={"b": AgentEvent(120, "liveliness token lost")},
+            degraded={"c": [AgentEvent(5, "link stalled"), AgentEvent(9, "link stalled")]},
+            counters={"c": {"malformed": 3, "dropped": 2}},
+            late={"a": 5, "b": 7},
+            late_ticks=12,
+            recording=RecordingReport(
+                segments=["run.mcap", "run.1.mcap"],
+                failures=["recorder killed at tick 50; continued in run.1.mcap"],
+            ),
+        )
+    )
+    assert result.code == DEGRADED and not result.failures
+    text = result.text()
+    assert "agent a safe from tick 37: battery low" in text
+    assert "agent b lost at tick 120" in text and "280 ticks missed (ticks 120..399)" in text
+    assert "agent c degraded 2 times (ticks 5, 9)" in text
+    assert "agent c: 3 malformed, 2 dropped messages" in text
+    assert "12 of 400 ticks late (3.0 %" in text or "12 of 400 ticks late (3.0%" in text
+    assert "a=5, b=7" in text and "continued in run.1.mcap" in text
+    assert text.startswith("outcome: degraded (exit status 3)")
+
+
+def test_late_ticks_within_max_late_fraction_are_a_note() -> None:
+    result = decide(summary(late={"a": 2}, late_ticks=2))  # 0.5 % <= 1 %
+    assert result.code == CLEAN and result.notes
+    assert decide(summary(late={"a": 5}, late_ticks=5)).code == DEGRADED  # 1.25 % > 1 %
+    assert decide(summary(late={"a": 5}, late_ticks=5, max_late_fraction=0.05)).code == CLEAN
+
+
+def test_an_agent_safe_from_its_first_tick_fails_the_run() -> None:
+    result = decide(summary(safe={"leader": AgentEvent(0, "has no pose_source")}))
+    assert result.code == FAILED
+    assert "safe from its first tick" in result.failures[0]
+
+
+def test_failures_interruptions_and_incomplete_recordings() -> None:
+    assert decide(None, error="port in use").code == FAILED
+    assert decide(None, interrupted=True).code == INTERRUPTED
+    assert decide(summary(failed=True, stop_reason="agent b lost; stop")).code == FAILED
+    assert decide(summary(ticks=0, stop_reason="interrupted"), interrupted=True).code == 130
+    assert decide(summary(ticks=0)).code == FAILED  # nothing ran
+    lost = RecordingReport(segments=["run.mcap"], lost_records=40, lost_ticks=(50, 60),
+                           stopped_at_tick=50)  # fmt: skip
+    result = decide(summary(recording=lost))
+    assert result.code == DEGRADED
+    assert "recording: 40 records lost (ticks 50..60)" in result.text()
+    assert "recording: stopped at tick 50" in result.text()
+    assert decide(summary(estop_tick=25, stop_reason="e-stop at tick 25")).code == DEGRADED
