@@ -176,7 +176,7 @@ class InstanceManager:
         self._reanchor = False
         self._estop_tick: int | None = None
         self.summary = RunSummary(experiment=experiment.name, mode=self.mode)
-        self.summary._dt = self.dt
+        self.summary.dt_s = self.dt
         self.summary.late = dict.fromkeys(self.names, 0)
         self.summary.planned_ticks = experiment.n_ticks
         # read defensively: the key comes with the experiment schema

@@ -146,8 +146,14 @@ def decide(
     if recording is not None:
         degradations += [f"recording: {line}" for line in recording.failures]
         if recording.lost_records:
-            span = f" ({_ticks(*recording.lost_ticks)})" if recording.lost_ticks else ""
+            span = ""
+            if recording.lost_ticks:
+                first, last = recording.lost_ticks
+                seconds = f", {(last - first + 1) * summary.dt_s:.2f} s" if summary.dt_s else ""
+                span = f" ({_ticks(first, last)}{seconds})"
             degradations.append(f"recording: {recording.lost_records} records lost{span}")
+        elif recording.failures and recording.stopped_at_tick is None:
+            notes.append("recording: no record lost (every segment is complete)")
         if recording.stopped_at_tick is not None:
             degradations.append(
                 f"recording: stopped at tick {recording.stopped_at_tick}; "

@@ -30,6 +30,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import iter_messages, read_schemas
+from hilswarm.orchestrator.segments import existing_segments
 from matplotlib.figure import Figure
 
 logger = logging.getLogger(__name__)
@@ -85,6 +86,8 @@ class RecordingData:
 def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     """Read ``/<agent>/y``, ``/<agent>/u``, ``/orchestrator/ticks`` and ``/experiment``.
 
+    A recording split into segments (``run.mcap``, ``run.1.mcap``, ...) is read whole.
+
     Raises:
         RecordingError: the file does not exist.
     """
@@ -93,16 +96,24 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
         raise RecordingError(f"recording {path} does not exist")
     rows: dict[str, list[tuple[int, float, list[float | None]]]] = {}
     data = RecordingData()
-    for topic, _, message in iter_messages(path):
-        if topic == "/experiment":
-            data.experiment = message
-        elif topic == "/orchestrator/ticks":
-            data.ticks.append(message)
-        elif _vector_kind(topic) is not None:
-            rows.setdefault(topic, []).append(
-                (int(message["k"]), _float(message.get("t")), list(message.get("values") or []))
-            )
-    schemas = read_schemas(path)
+    seen: set[tuple[str, int]] = set()
+    schemas: dict[str, dict[str, Any]] = {}
+    for segment in existing_segments(path):  # run.mcap, run.1.mcap, ... of a split recording
+        for topic, _, message in iter_messages(segment):
+            if topic == "/experiment":
+                data.experiment = data.experiment or message
+            elif topic == "/orchestrator/ticks" or _vector_kind(topic) is not None:
+                k = int(message["k"])
+                if (topic, k) in seen:
+                    continue
+                seen.add((topic, k))
+                if topic == "/orchestrator/ticks":
+                    data.ticks.append(message)
+                    continue
+                rows.setdefault(topic, []).append(
+                    (k, _float(message.get("t")), list(message.get("values") or []))
+                )
+        schemas = {**read_schemas(segment), **schemas}
     graph_order = ((data.experiment or {}).get("graph") or {}).get("agents") or []
     rank = {name: i for i, name in enumerate(graph_order)}
     ordered = sorted(rows.items(), key=lambda item: rank.get(item[0][1:].split("/")[0], len(rank)))

@@ -69,6 +69,7 @@ from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.record_stream import FrameReader, FrameRecorder
 from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
 from hilswarm.orchestrator.run_summary import RecordingReport
+from hilswarm.orchestrator.segments import existing_segments, segment_path
 
 logger = logging.getLogger(__name__)
 
@@ -123,21 +124,6 @@ def _enlarge_pipe(fd: int, size: int) -> int:
         return fcntl.fcntl(fd, _F_GETPIPE_SZ)
     except OSError:
         return 0
-
-
-def segment_path(path: Path, index: int) -> Path:
-    """Segment ``index`` of the recording ``path``: ``run.mcap``, ``run.1.mcap``, ..."""
-    return path if index == 0 else path.with_name(f"{path.stem}.{index}{path.suffix or '.mcap'}")
-
-
-def existing_segments(path: Path) -> list[Path]:
-    """The files of the recording ``path`` that exist (itself and its ``run.N.mcap``)."""
-    found = [path] if path.exists() else []
-    index = 1
-    while segment_path(path, index).exists():
-        found.append(segment_path(path, index))
-        index += 1
-    return found
 
 
 @dataclass

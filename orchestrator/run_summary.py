@@ -73,6 +73,7 @@ class RunSummary:
         failed: True when the run could not do what was asked (lost agent with policy stop,
             start-up failure).
         recording: what happened to the recording (``None``: not recorded).
+        dt_s: the tick period [s].
     """
 
     experiment: str
@@ -93,13 +94,12 @@ class RunSummary:
     estop_tick: int | None = None
     failed: bool = False
     recording: RecordingReport | None = None
+    dt_s: float = 0.0
 
     @property
     def speed(self) -> float:
         """Experiment time per wall-clock time (lockstep speed-up; ~1 in realtime)."""
-        return 0.0 if self.wall_s <= 0 else self.ticks * self._dt / self.wall_s
-
-    _dt: float = 0.0
+        return 0.0 if self.wall_s <= 0 else self.ticks * self.dt_s / self.wall_s
 
     def completion_percentiles(self) -> tuple[float, float]:
         """(p50, p99) of tick completion times [s] over every tick that was due.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from hilswarm.orchestrator.recover import recover
+from hilswarm.orchestrator.segments import existing_segments
 
 HELP = "rewrite an MCAP file whose writer was killed"
 
@@ -31,4 +32,10 @@ def run(args: argparse.Namespace) -> int:
     )
     for topic, count in sorted(result.topics.items()):
         print(f"  {topic}: {count}")
+    others = [p for p in existing_segments(result.source)[1:] if p != result.destination]
+    if others:
+        print(
+            f"note: the recording continues in {', '.join(str(p) for p in others)} "
+            "(segments written after a recorder restart); recover any of them that needs it"
+        )
     return 0

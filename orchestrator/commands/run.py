@@ -40,8 +40,9 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
-from hilswarm.orchestrator.recorder_process import RecorderProcess, existing_segments
+from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_summary import RunSummary
+from hilswarm.orchestrator.segments import existing_segments
 from hilswarm.orchestrator.status_display import StatusDisplay
 
 HELP = "run an experiment file (one process per agent, recorded to MCAP)"

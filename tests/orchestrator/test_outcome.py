@@ -68,8 +68,26 @@ def test_failures_interruptions_and_incomplete_recordings() -> None:
     assert decide(summary(ticks=0)).code == FAILED  # nothing ran
     lost = RecordingReport(segments=["run.mcap"], lost_records=40, lost_ticks=(50, 60),
                            stopped_at_tick=50)  # fmt: skip
-    result = decide(summary(recording=lost))
+    result = decide(summary(recording=lost, dt_s=0.02))
     assert result.code == DEGRADED
-    assert "recording: 40 records lost (ticks 50..60)" in result.text()
+    assert "recording: 40 records lost (ticks 50..60, 0.22 s)" in result.text()
     assert "recording: stopped at tick 50" in result.text()
     assert decide(summary(estop_tick=25, stop_reason="e-stop at tick 25")).code == DEGRADED
+
+
+def test_a_restarted_recorder_that_lost_nothing_says_so() -> None:
+    split = RecordingReport(segments=["run.mcap", "run.1.mcap"],
+                            failures=["killed by SIGKILL at tick 60; continued in run.1.mcap"])  # fmt: skip
+    result = decide(summary(recording=split))
+    assert result.code == DEGRADED  # the recording is split: a script must know
+    assert "recording: no record lost" in result.text()
+    assert "recording in segments: run.mcap, run.1.mcap" in result.text()
+
+
+def test_on_recording_failure_is_read_from_the_experiment() -> None:
+    from types import SimpleNamespace
+
+    from hilswarm.orchestrator.commands.run import on_recording_failure
+
+    assert on_recording_failure(SimpleNamespace()) == "stop"  # the default
+    assert on_recording_failure(SimpleNamespace(on_recording_failure="continue")) == "continue"

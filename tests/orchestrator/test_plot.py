@@ -62,6 +62,20 @@ def test_load_recording(consensus_recording: Path) -> None:
     assert key == "completion_s" and latency.shape == k.shape == (200,)
 
 
+def test_a_recording_split_into_segments_is_read_whole(tmp_path: Path) -> None:
+    """run.mcap + run.1.mcap (a restarted recorder): one series, each tick once."""
+    experiment = load_experiment(GRAPHS / "consensus_ring.toml")
+    path = tmp_path / "run.mcap"
+    for segment, ticks in ((path, range(0, 60)), (tmp_path / "run.1.mcap", range(55, 100))):
+        with Recorder(segment, experiment) as recorder:  # 55..59 in both: read once
+            for k in ticks:
+                recorder.write_vector("/a0/y", k=k, t=k * 0.1, values=[k, -k], log_time_ns=T0 + k)
+                recorder.write_ticks(k=k, t=k * 0.1, log_time_ns=T0 + k, timings={})
+    data = load_recording(path)
+    assert data.outputs["a0"].values[:, 0].tolist() == list(range(100))
+    assert [tick["k"] for tick in data.ticks] == list(range(100))
+
+
 def test_plot_writes_every_figure(consensus_recording: Path, tmp_path: Path) -> None:
     written = plot_recording(consensus_recording, tmp_path / "plots")
     assert [p.name for p in written] == ["outputs.png", "inputs.png", "paths.png", "ticks.png"]
