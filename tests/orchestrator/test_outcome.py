@@ -76,8 +76,10 @@ def test_failures_interruptions_and_incomplete_recordings() -> None:
 
 
 def test_a_restarted_recorder_that_lost_nothing_says_so() -> None:
-    split = RecordingReport(segments=["run.mcap", "run.1.mcap"],
-                            failures=["killed by SIGKILL at tick 60; continued in run.1.mcap"])  # fmt: skip
+    split = RecordingReport(
+        segments=["run.mcap", "run.1.mcap"],
+        failures=["killed by SIGKILL at tick 60; continued in run.1.mcap"],
+    )
     result = decide(summary(recording=split))
     assert result.code == DEGRADED  # the recording is split: a script must know
     assert "recording: no record lost" in result.text()
