@@ -604,7 +604,8 @@ class ApiFrameDecoder:
 
     def _feed_escaped(self, data: bytes | bytearray, frames: list[ApiFrame]) -> None:
         buffer = self._buffer
-        for byte in data:
+        for raw in data:
+            byte = raw
             if byte == START:
                 if buffer:
                     self._drop(DropReason.LENGTH)  # a frame cut short by the next delimiter
@@ -616,7 +617,7 @@ class ApiFrameDecoder:
                 continue
             if self._escape_pending:
                 self._escape_pending = False
-                byte ^= ESCAPE_XOR
+                byte = raw ^ ESCAPE_XOR
                 if byte not in ESCAPED:
                     self._drop(DropReason.BAD_ESCAPE)
                     buffer.clear()
