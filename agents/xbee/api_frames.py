@@ -16,7 +16,7 @@ Two frame families are supported:
   (0x80, with RSSI), TX Status (0x89).
 * ZigBee / DigiMesh: Transmit Request (0x10), Receive Packet (0x90), Transmit Status (0x8B).
 
-and, common to both: AT Command (0x08), AT Command Response (0x88), Remote AT Command Request
+and, common to both: AT Command (0x08), AT Command - Queue Parameter Value (0x09), AT Command Response (0x88), Remote AT Command Request
 (0x17), Remote AT Command Response (0x97), Modem Status (0x8A).
 
 :class:`ApiFrameDecoder` follows the Firmata style of the wire codec: it is fed bytes in chunks
@@ -281,6 +281,20 @@ class AtCommand:
 
 
 @dataclass(frozen=True, slots=True)
+class AtQueuedCommand:
+    """AT Command - Queue Parameter Value (0x09): like 0x08, applied at the next ``AC``."""
+
+    api_id: ClassVar[int] = 0x09
+    frame_id: int
+    command: str
+    parameter: bytes = b""
+
+    def encode(self) -> bytes:
+        """Frame data."""
+        return bytes((0x09, self.frame_id)) + _at_name(self.command) + self.parameter
+
+
+@dataclass(frozen=True, slots=True)
 class AtResponse:
     """AT Command Response (0x88): status 0 OK, 1 error, 2 bad command, 3 bad parameter."""
 
@@ -356,6 +370,7 @@ ApiFrame = (
     | ReceivePacket
     | TransmitStatus
     | AtCommand
+    | AtQueuedCommand
     | AtResponse
     | RemoteAtCommand
     | RemoteAtResponse
@@ -417,6 +432,11 @@ def _parse_at(d: bytes) -> AtCommand:
     return AtCommand(d[1], d[2:4].decode("ascii", errors="replace"), d[4:])
 
 
+def _parse_at_queued(d: bytes) -> AtQueuedCommand:
+    _need(d, 4, "AT Queued Command")
+    return AtQueuedCommand(d[1], d[2:4].decode("ascii", errors="replace"), d[4:])
+
+
 def _parse_at_response(d: bytes) -> AtResponse:
     _need(d, 5, "AT Response")
     return AtResponse(d[1], d[2:4].decode("ascii", errors="replace"), d[4], d[5:])
@@ -449,6 +469,7 @@ _PARSERS: dict[int, Callable[[bytes], ApiFrame]] = {
     0x90: _parse_receive_packet,
     0x8B: _parse_transmit_status,
     0x08: _parse_at,
+    0x09: _parse_at_queued,
     0x88: _parse_at_response,
     0x17: _parse_remote_at,
     0x97: _parse_remote_at_response,
