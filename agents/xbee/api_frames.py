@@ -16,8 +16,9 @@ Two frame families are supported:
   (0x80, with RSSI), TX Status (0x89).
 * ZigBee / DigiMesh: Transmit Request (0x10), Receive Packet (0x90), Transmit Status (0x8B).
 
-and, common to both: AT Command (0x08), AT Command - Queue Parameter Value (0x09), AT Command Response (0x88), Remote AT Command Request
-(0x17), Remote AT Command Response (0x97), Modem Status (0x8A).
+and, common to both: AT Command (0x08), AT Command - Queue Parameter Value (0x09), AT Command
+Response (0x88), Remote AT Command Request (0x17), Remote AT Command Response (0x97),
+Modem Status (0x8A).
 
 :class:`ApiFrameDecoder` follows the Firmata style of the wire codec: it is fed bytes in chunks
 of any size, never raises and never blocks, drops frames with a bad checksum, length or

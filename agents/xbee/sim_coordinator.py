@@ -380,9 +380,12 @@ class SimCoordinator:
             self.air.set_loss(self.address, frame.dest, 1.0)
         no_ack = options_disable_ack(frame)
         tx = self.air.transmit(now, self.address, None if no_ack else frame.dest, size)
-        if remote is not None and tx.delivered_s is not None:
-            if not no_ack or not self.air.lost(self.address, remote.address):
-                self.loop.call_at(tx.delivered_s, lambda: self._to_robot(remote, frame.data))
+        if (
+            remote is not None
+            and tx.delivered_s is not None
+            and (not no_ack or not self.air.lost(self.address, remote.address))
+        ):
+            self.loop.call_at(tx.delivered_s, lambda: self._to_robot(remote, frame.data))
         ok = tx.acked or no_ack
         status = (
             TxStatusCode.SUCCESS
