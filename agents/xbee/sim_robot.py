@@ -9,6 +9,8 @@ to :meth:`~RobotUart.start` (from any thread: the receiver hands them off). Impl
 * :class:`SerialUart` — any pyserial URL: a ``simavr`` harness's pty (the real firmware) or a
   ``socket://`` robot served elsewhere.
 * :class:`SimavrUart` — starts the real firmware in simavr and is a :class:`SerialUart` on it.
+* :class:`BusUart` — a robot run by its agent's process (:mod:`.robot_host`), its UART bytes on
+  the bus keys ``agent/<name>/link/robot/{in,out}``.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from collections.abc import Callable
 from typing import Protocol
 
 import serial
+import zenoh
+from hilswarm.agents import bus
 from hilswarm.agents.link.board import Board
 from hilswarm.agents.link.simavr import SimavrHarness
 from hilswarm.agents.link.wire_server import WireServer
@@ -152,3 +156,47 @@ class SimavrUart(SerialUart):
         """Close the pty and stop the harness."""
         super().stop()
         self.harness.stop()
+
+
+class BusUart:
+    """A robot whose UART is carried by the bus (its agent's process runs it).
+
+    Args:
+        session: a bus session.
+        keys: the experiment's keys.
+        agent: the agent whose simulated robot it is.
+    """
+
+    def __init__(self, session: zenoh.Session, keys: bus.BusKeys, agent: str) -> None:
+        self.session = session
+        self.keys = keys
+        self.agent = agent
+        self._entities: list[object] = []
+        self._pub: zenoh.Publisher | None = None
+
+    def start(self, on_bytes: BytesCallback) -> None:
+        """Declare the keys; the robot's bytes go to ``on_bytes`` (a short hand-off)."""
+        self._pub = self.session.declare_publisher(
+            self.keys.link_robot(self.agent, "in"), **bus.TICK_PATH_QOS
+        )
+        self._entities = [
+            self._pub,
+            self.session.declare_subscriber(
+                self.keys.link_robot(self.agent, "out"),
+                lambda sample: on_bytes(sample.payload.to_bytes()),
+            ),
+        ]
+
+    def write(self, data: bytes) -> None:
+        """Put ``data`` on the robot's ``in`` key."""
+        if self._pub is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._pub.put(data)
+
+    def stop(self) -> None:
+        """Undeclare. Idempotent."""
+        for entity in self._entities:
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()  # type: ignore[attr-defined]
+        self._entities = []
+        self._pub = None
