@@ -146,6 +146,7 @@ class SimRemote:
     def __post_init__(self) -> None:
         self.params = {
             **_default_params(self.address, self.node_id or f"{self.address:016X}", 0, self.baud),
+            "DB": bytes((min(-self.rssi_dbm, 255),)),
             **self.params,
         }
         self._pending = bytearray()  # robot bytes not yet packetized
