@@ -127,8 +127,8 @@ class Agent:
     Args:
         config: what to build and where it sits in the graph.
         endpoints: Zenoh endpoints to connect to (the orchestrator's router or a zenohd).
-        hardware_factory: builds vehicle/board/controller from the config and the bus session
-            (keyword ``session``; tests may pass their own).
+        hardware_factory: builds vehicle/board/controller from the config and the bus
+            endpoints (keyword ``endpoints``; tests may pass their own).
         clock: monotonic clock [s] used for tick timings.
         startup_timeout_s: bound on waiting for the bus and the manager.
     """
@@ -372,7 +372,7 @@ class Agent:
         try:
             session = self._open_bus()
             self.lifecycle.connect()
-            self.use_hardware(self._hardware_factory(self.config, session=session))
+            self.use_hardware(self._hardware_factory(self.config, endpoints=self.endpoints))
             self.lifecycle.configure()
             self._declare(session)
             self.lifecycle.arm(detail=f"neighbours: {', '.join(self.config.neighbours) or '-'}")

@@ -33,6 +33,7 @@ from hilswarm.agents.link.simavr import SimavrBoard, outputs_from_state
 from hilswarm.agents.link.url import board_for_url
 from hilswarm.agents.link.wire_server import WireServer
 from hilswarm.agents.xbee.sim_robot import SerialUart
+from hilswarm.agents.xbee.transport import ChannelReader
 
 _log = logging.getLogger(__name__)
 
@@ -73,6 +74,7 @@ class RobotHost:
         self._uart: SerialUart | None = None
         self._decoder = FrameDecoder()
         self._modes: dict[int, PinMode] = {}
+        self._reader: ChannelReader | None = None
 
     def start(self) -> None:
         """Power the robot on and connect its UART to the bus."""
@@ -96,11 +98,8 @@ class RobotHost:
             target=self._work, args=(out,), name=f"robot-{self.agent}", daemon=True
         )
         self._thread.start()
-        self._entities.append(
-            self.session.declare_subscriber(
-                self.keys.link_robot(self.agent, "in"),
-                lambda sample: self._inbox.put(sample.payload.to_bytes()),
-            )
+        self._reader = ChannelReader(
+            self.session, self.keys.link_robot(self.agent, "in"), self._inbox.put
         )
 
     def _work(self, out: zenoh.Publisher) -> None:
@@ -139,6 +138,12 @@ class RobotHost:
 
     def stop(self) -> None:
         """Power the robot off. Idempotent."""
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+        if self._uart is not None:
+            self._uart.stop()
+            self._uart = None
         self._inbox.put(None)
         if self._thread is not None:
             self._thread.join(timeout=3.0)
@@ -147,9 +152,6 @@ class RobotHost:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         self._entities.clear()
-        if self._uart is not None:
-            self._uart.stop()
-            self._uart = None
         if self._simavr is not None:
             self._simavr.harness.stop()
             self._simavr = None

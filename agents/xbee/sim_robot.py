@@ -111,7 +111,12 @@ class SerialUart:
                     _log.warning("robot UART %s failed: %s", self.url, exc)
                 return
             if data:
-                on_bytes(data)
+                try:
+                    on_bytes(data)
+                except Exception:  # the receiver failed (e.g. closed): stop reading
+                    if not self._stop.is_set():
+                        _log.exception("robot UART %s: receiver failed", self.url)
+                    return
 
     def write(self, data: bytes) -> None:
         """Write to the robot (dropped, as on a dead UART, when the port is gone)."""

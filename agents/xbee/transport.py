@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -31,6 +32,53 @@ from hilswarm.agents.xbee.config import parse_xbee_url
 DEFAULT_TIMEOUT_S = 0.25
 #: How long the first HELLO is retried [s] (the gateway and the robot start with the run).
 DEFAULT_OPEN_TIMEOUT_S = 10.0
+
+
+class ChannelReader:
+    """Receive the samples of ``key`` on a thread of our own and pass their bytes on.
+
+    A channel, not a callback: an agent runs its tick (and so a board's exchange) on a bus
+    callback, and a sample delivered by a callback of the same session's link would wait behind
+    it. :meth:`close` wakes the thread with an empty sample (no sender on these keys sends
+    one), after which it undeclares the subscriber and ends.
+
+    Args:
+        session: the bus session.
+        key: the key to receive.
+        on_bytes: called with each sample's payload (on the reader thread).
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, on_bytes: Callable[[bytes], None]) -> None:
+        self._closed = False
+        self._on_bytes = on_bytes
+        self._wake = session.declare_publisher(key)
+        self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(1024))
+        self._thread = threading.Thread(target=self._drain, name=f"bus-reader-{key}", daemon=True)
+        self._thread.start()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                data = self._sub.recv().payload.to_bytes()
+            except (zenoh.ZError, RuntimeError, StopIteration):
+                return
+            if self._closed:
+                with contextlib.suppress(zenoh.ZError, RuntimeError):
+                    self._sub.undeclare()
+                return
+            if data:
+                self._on_bytes(data)
+
+    def close(self) -> None:
+        """Stop receiving. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(zenoh.ZError):
+            self._wake.put(b"")
+        self._thread.join(timeout=2.0)
+        with contextlib.suppress(zenoh.ZError):
+            self._wake.undeclare()
 
 
 class BusPort:
@@ -49,12 +97,11 @@ class BusPort:
         self._cond = threading.Condition()
         self._closed = False
         self._pub = session.declare_publisher(tx_key, **bus.TICK_PATH_QOS)
-        self._sub = session.declare_subscriber(rx_key, self._on_rx)
+        self._reader = ChannelReader(session, rx_key, self._received)
 
-    def _on_rx(self, sample: zenoh.Sample) -> None:
-        """Bus callback: append and wake the reader (short, never blocks on I/O)."""
+    def _received(self, data: bytes) -> None:
         with self._cond:
-            self._buffer += sample.payload.to_bytes()
+            self._buffer += data
             self._cond.notify()
 
     def read(self, size: int = 1) -> bytes:
@@ -82,39 +129,107 @@ class BusPort:
         return len(data)
 
     def close(self) -> None:
-        """Undeclare. Idempotent."""
+        """Stop reading and undeclare. Idempotent."""
         with self._cond:
             if self._closed:
                 return
             self._closed = True
             self._cond.notify_all()
-        for entity in (self._sub, self._pub):
-            with contextlib.suppress(zenoh.ZError):
-                entity.undeclare()
+        self._reader.close()
+        with contextlib.suppress(zenoh.ZError):
+            self._pub.undeclare()
 
 
 class XBeeBoard(SerialBoard):
-    """A :class:`SerialBoard` over a :class:`BusPort`; also runs the simulated robot if any."""
+    """A :class:`SerialBoard` over a :class:`BusPort`; also runs the simulated robot if any.
 
-    def __init__(self, url: str, *, robot: Any | None = None, **options: Any) -> None:
-        super().__init__(url, **options)
-        self.robot = robot
+    The link has a bus session of its own (opened on :meth:`open` from ``endpoints``), not the
+    agent's: an agent runs its tick on a callback of its own session's link, and a reply
+    arriving on that same link would wait behind the tick that waits for it.
+
+    Args:
+        url: the ``xbee://`` URL (for messages).
+        keys: the experiment's bus keys.
+        agent: the agent's name.
+        endpoints: bus endpoints to open the link's session with.
+        session: use this session instead (not closed by the board; for tests and tools that
+            do not exchange from a bus callback).
+        sim: the simulated robot's board URL, or ``None``.
+        plant: the simulated robot's plant.
+        dt: its plant step [s].
+        options: :class:`SerialBoard` options.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        keys: bus.BusKeys,
+        agent: str,
+        endpoints: list[str] | None = None,
+        session: zenoh.Session | None = None,
+        sim: str | None = None,
+        plant: Any | None = None,
+        dt: float | None = None,
+        **options: Any,
+    ) -> None:
+        super().__init__(url, port_factory=self._bus_port, port_url=url, **options)
+        self.keys = keys
+        self.agent = agent
+        self.endpoints = list(endpoints or [])
+        self.session = session
+        self._own_session = session is None
+        self.sim = sim
+        self.plant = plant
+        self.dt = dt
+        self.robot: Any | None = None
+
+    def _bus_port(self, _url: str, _baud: int, poll_s: float) -> SerialPort:
+        session = self._require_session()
+        try:
+            return BusPort(
+                session, self.keys.link_tx(self.agent), self.keys.link_rx(self.agent), poll_s
+            )
+        except zenoh.ZError as exc:
+            raise BoardConnectionError(f"{self.url}: cannot declare the bus keys: {exc}") from exc
+
+    def _require_session(self) -> zenoh.Session:
+        if self.session is None:
+            if not self.endpoints:
+                raise BoardConnectionError(f"{self.url}: no bus endpoint to reach the gateway")
+            self.session = bus.open_session(bus.client_config(self.endpoints))
+        return self.session
 
     def open(self) -> BoardInfo:
         """Start the simulated robot (if any), then the HELLO handshake through the gateway."""
-        if self.robot is not None:
-            self.robot.start()
         try:
+            if self.sim is not None and self.robot is None:
+                from hilswarm.agents.xbee.robot_host import RobotHost  # noqa: PLC0415 - sim only
+
+                self.robot = RobotHost(
+                    self.sim,
+                    self._require_session(),
+                    self.keys,
+                    self.agent,
+                    plant=self.plant,
+                    dt=self.dt,
+                )
+                self.robot.start()
             return super().open()
         except BaseException:
             self.close()
             raise
 
     def close(self) -> None:
-        """Close the link and stop the simulated robot."""
+        """Close the link, stop the simulated robot and close the link's own session."""
         super().close()
-        if self.robot is not None:
-            self.robot.stop()
+        robot, self.robot = self.robot, None
+        if robot is not None:
+            robot.stop()
+        if self._own_session and self.session is not None:
+            session, self.session = self.session, None
+            with contextlib.suppress(zenoh.ZError):
+                session.close()
 
     def __repr__(self) -> str:
         return f"XBeeBoard({self.url!r})"
@@ -123,6 +238,7 @@ class XBeeBoard(SerialBoard):
 def board_from_url(
     url: str,
     *,
+    endpoints: list[str] | None = None,
     session: zenoh.Session | None = None,
     experiment: str | None = None,
     agent: str | None = None,
@@ -133,15 +249,15 @@ def board_from_url(
     """Build the board of ``xbee://<address>[?sim=...&timeout_s=...]`` for agent ``agent``.
 
     Raises:
-        LinkUrlError: a bad URL, or no bus session / agent name to reach the gateway with.
+        LinkUrlError: a bad URL, or no bus endpoints (or session) / agent name to reach the
+            gateway with.
     """
     link = parse_xbee_url(url)
-    if session is None or experiment is None or agent is None:
+    if (session is None and not endpoints) or experiment is None or agent is None:
         raise LinkUrlError(
-            f"link URL {url!r}: an xbee:// board is reached through the experiment's gateway; "
-            "it needs the agent's bus session (run it with `hilswarm run` or `hilswarm agent`)"
+            f"link URL {url!r}: an xbee:// board is reached through the experiment's gateway "
+            "over the bus; run it with `hilswarm run` or `hilswarm agent`"
         )
-    keys = bus.BusKeys(experiment)
     settings: dict[str, Any] = {
         "timeout_s": DEFAULT_TIMEOUT_S,
         "open_timeout_s": DEFAULT_OPEN_TIMEOUT_S,
@@ -149,16 +265,14 @@ def board_from_url(
         **dict(link.options),
         **options,
     }
-
-    def factory(_url: str, _baud: int, poll_s: float) -> SerialPort:
-        try:
-            return BusPort(session, keys.link_tx(agent), keys.link_rx(agent), poll_s)
-        except zenoh.ZError as exc:
-            raise BoardConnectionError(f"{url}: cannot declare the bus keys: {exc}") from exc
-
-    robot = None
-    if link.sim is not None:
-        from hilswarm.agents.xbee.robot_host import RobotHost  # noqa: PLC0415 - sim only
-
-        robot = RobotHost(link.sim, session, keys, agent, plant=plant, dt=dt)
-    return XBeeBoard(url, robot=robot, port_factory=factory, port_url=url, **settings)
+    return XBeeBoard(
+        url,
+        keys=bus.BusKeys(experiment),
+        agent=agent,
+        endpoints=endpoints,
+        session=session,
+        sim=link.sim,
+        plant=plant,
+        dt=dt,
+        **settings,
+    )
