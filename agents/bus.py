@@ -33,17 +33,15 @@ Configurations: the orchestrator opens a *router* session listening on loopback;
 hub does not relay between peers). Multicast scouting and gossip are off in every
 configuration; the link lease is short (1 s) so that a hung process is dropped quickly.
 
-Zenoh's runtime pools are handed over to one application worker thread in every hilswarm
-process (:data:`LEAN_RUNTIME`, applied by :func:`open_session` unless ``ZENOH_RUNTIME`` is
-already set): on two cores a client then runs 4 threads instead of 9 and a tick costs less CPU
-(docs/running.md, "Performance"). ``ZENOH_RUNTIME="()"`` restores Zenoh's own pools.
+:data:`LEAN_RUNTIME` hands Zenoh's runtime pools over to one application worker thread (the
+``ZENOH_RUNTIME`` environment variable): a client then runs 4 threads instead of 9. It is safe
+only where no bus callback blocks (one blocked callback would starve the lease keep-alives).
 """
 
 from __future__ import annotations
 
 import enum
 import json
-import os
 import re
 import struct
 from collections.abc import Iterable, Sequence
@@ -624,12 +622,7 @@ LEAN_RUNTIME = (
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:
-    """Open a Zenoh session, turning Zenoh's errors into :class:`BusConnectionError`.
-
-    The process's Zenoh runtime is :data:`LEAN_RUNTIME` unless ``ZENOH_RUNTIME`` was set
-    before the first session opened (child processes inherit the setting).
-    """
-    os.environ.setdefault("ZENOH_RUNTIME", LEAN_RUNTIME)
+    """Open a Zenoh session, turning Zenoh's errors into :class:`BusConnectionError`."""
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:

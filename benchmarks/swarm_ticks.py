@@ -389,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
         help="recorder process (as hilswarm run), recorder inside the manager, or none",
     )  # fmt: skip
     parser.add_argument(
-        "--zenoh-runtime", choices=("lean", "default"), default="lean",
+        "--zenoh-runtime", choices=("lean", "default"), default="default",
         help="Zenoh runtime pools of every process (baseline and runtime alike): hilswarm's "
         "lean setting (bus.LEAN_RUNTIME) or Zenoh's defaults",
     )  # fmt: skip
