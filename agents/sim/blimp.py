@@ -132,6 +132,10 @@ class BlimpPlant(ContinuousPlant):
         mass_diagonal: diagonal of M [kg ×3, kg·m² ×3].
     """
 
+    #: Units of the inputs and outputs (recorded in the MCAP schemas, shown on plot axes).
+    input_units = {"thrust_left": "N", "thrust_right": "N", "thrust_angle": "rad"}
+    output_units = {"x": "m", "y": "m", "z": "m", "yaw": "rad"}
+
     def __init__(self, params: BlimpParams = DEFAULT_BLIMP_PARAMS) -> None:
         if not isinstance(params, BlimpParams):
             raise PlantError(f"BlimpPlant needs BlimpParams, got {type(params).__name__}")

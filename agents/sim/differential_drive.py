@@ -173,6 +173,10 @@ class DifferentialDrive(ContinuousPlant):
         geometry: track, wheel size and speed limit (default: the thesis' Frisbee bot).
     """
 
+    #: Units of the inputs and outputs (recorded in the MCAP schemas, shown on plot axes).
+    input_units = {"v_left": "m/s", "v_right": "m/s"}
+    output_units = {"x": "m", "y": "m", "psi": "rad"}
+
     def __init__(self, geometry: DriveGeometry = FRISBEE_GEOMETRY) -> None:
         if not isinstance(geometry, DriveGeometry):
             raise PlantError(f"geometry must be a DriveGeometry, got {type(geometry).__name__}")

@@ -50,6 +50,10 @@ class SpringMassDamper(LinearPlant):
         PlantError: a parameter is not a finite number in its range.
     """
 
+    #: Units of the inputs and outputs (recorded in the MCAP schemas, shown on plot axes).
+    input_units = {"F1": "N", "F2": "N"}
+    output_units = {"x": "m", "xdot": "m/s", "y": "m", "ydot": "m/s"}
+
     def __init__(
         self,
         m: float = 1.0,
