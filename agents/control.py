@@ -357,9 +357,7 @@ class ControlModel:
         size = self._x_hat.shape[0]
         if size == 0 or self._x_channel is not None:
             return
-        self._x_channel = self.history.add_channel(
-            "x_hat", self.controller.state_names_for(size)
-        )
+        self._x_channel = self.history.add_channel("x_hat", self.controller.state_names_for(size))
 
     @property
     def k(self) -> int:

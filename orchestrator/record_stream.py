@@ -305,27 +305,24 @@ class FrameRecorder:
             self._plain_vector(self._y_topics[i], k, t, values, log_ns)
         if u:
             t_u = t - self.dt
-            self._signal_row(rows, self._u_topics[i], k, t_u, u, log_ns)
+            self._signal_row(rows, (self._u_topics[i], k, t_u, u, log_ns))
             if x_hat:
-                self._signal_row(rows, self._x_topics[i], k, t_u, x_hat, log_ns)
+                self._signal_row(rows, (self._x_topics[i], k, t_u, x_hat, log_ns))
 
     def _signal_row(
         self,
         rows: list[tuple[str, int, float, Sequence[float], int]],
-        topic: str,
-        k: int,
-        t: float,
-        values: Sequence[float],
-        log_ns: int,
+        row: tuple[str, int, float, Sequence[float], int],
     ) -> None:
         """Queue ``u``/``x_hat``; one whose size does not match its names is recorded plain."""
+        topic, k, t, values, log_ns = row
         if topic not in self._plain_topics:
             fields = self._topic_widths.get(topic, -1)
             if fields == -1:
                 names = self.recorder.topic_fields(topic)
                 fields = self._topic_widths[topic] = None if names is None else len(names)
             if fields is None or fields == len(values):
-                rows.append((topic, k, t, values, log_ns))
+                rows.append(row)
                 return
             logger.warning("%s: %d values, not its %d named entries: recorded plain",
                            topic, len(values), fields)  # fmt: skip
