@@ -39,10 +39,12 @@ import numpy as np
 from foxglove import Channel, Schema
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from hilswarm.agents.errors import RecordingError
+from hilswarm.agents.record_schema import BASE_KEYS, experiment_log_time_ns, vector_schema
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import StreamReader
 from mcap.records import Channel as McapChannel
 from mcap.records import Message as McapMessage
+from mcap.records import Metadata
 from mcap.records import Schema as McapSchema
 from numpy.typing import ArrayLike
 
@@ -51,9 +53,6 @@ logger = logging.getLogger(__name__)
 #: Default chunk size [bytes]: small, so a crash loses little.
 DEFAULT_CHUNK_SIZE = 32 * 1024
 
-#: Keys every vector message has.
-BASE_KEYS = ("k", "t", "values")
-
 #: Chunk compressions a writer offers.
 COMPRESSIONS = ("zstd", "lz4", "none")
 #: Chunk compression of recordings (see ``docs/recording.md`` for the measurement).
@@ -61,31 +60,6 @@ DEFAULT_COMPRESSION = "zstd"
 
 #: Schema of a free-form JSON topic registered without a schema.
 ANY_OBJECT_SCHEMA: dict[str, Any] = {"type": "object"}
-
-
-def vector_schema(topic: str, fields: Sequence[str] | None = None) -> dict[str, Any]:
-    """The JSON Schema of a vector topic: ``k``, ``t``, ``values`` and the named ``fields``."""
-    properties: dict[str, Any] = {
-        "k": {"type": "integer", "description": "tick index"},
-        "t": {"type": "number", "description": "experiment time [s]"},
-        "values": {
-            "type": "array",
-            "items": {"type": ["number", "null"]},
-            "description": "the vector; null marks a non-finite (NaN/inf) entry",
-        },
-    }
-    for index, field in enumerate(fields or ()):
-        properties[field] = {
-            "type": ["number", "null"],
-            "description": f"values[{index}]",
-        }
-    return {
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": topic,
-        "type": "object",
-        "properties": properties,
-        "required": list(BASE_KEYS),
-    }
 
 
 def finite_or_none(value: float) -> float | None:
@@ -236,7 +210,9 @@ def _t_text(t: float) -> str:
 class _Topic:
     """A registered topic: its channel, schema, field names and JSON template."""
 
-    __slots__ = ("fields", "log", "name", "quoted_fields", "schema", "template", "width")
+    __slots__ = (
+        "fields", "log", "name", "quoted_fields", "schema", "template", "wall_template", "width",
+    )  # fmt: skip
 
     def __init__(
         self,
@@ -254,8 +230,12 @@ class _Topic:
         # The JSON text of a message with "%" holes: k, t, the values and each named field.
         named = "".join(f",{name.replace('%', '%%')}:%s" for name in self.quoted_fields or ())
         self.template = '{"k":%d,"t":%s,"values":[%s]' + named + "}"
+        # The same with the wall time [ns] the message was received at (experiment clock).
+        self.wall_template = '{"k":%d,"t":%s,"wall_ns":%d,"values":[%s]' + named + "}"
 
-    def vector_bytes(self, k: int, t: float, values: Sequence[float]) -> bytes:
+    def vector_bytes(
+        self, k: int, t: float, values: Sequence[float], wall_ns: int | None = None
+    ) -> bytes:
         """:func:`vector_json` of a message of this topic, from its template.
 
         Raises:
@@ -281,6 +261,10 @@ class _Topic:
         if "n" in text:  # a NaN or an infinity: JSON has neither
             numbers = ["null" if "n" in number else number for number in text.split(",")]
             text = ",".join(numbers)
+        if wall_ns is not None:
+            if width is None:
+                return (self.wall_template % (int(k), t_text, wall_ns, text)).encode()
+            return (self.wall_template % (int(k), t_text, wall_ns, text, *numbers)).encode()
         if width is None:
             return (self.template % (int(k), t_text, text)).encode()
         return (self.template % (int(k), t_text, text, *numbers)).encode()
@@ -296,6 +280,10 @@ class McapJsonWriter:
             :meth:`flush` (the recorder process ends them where it acknowledges).
         compression: ``"zstd"`` (default, :data:`DEFAULT_COMPRESSION`), ``"lz4"`` or
             ``"none"``.
+        time_origin_ns: when given [ns, wall clock], the log time of a message with an
+            experiment time ``t`` is ``time_origin_ns + t``
+            (:func:`~hilswarm.agents.record_schema.experiment_log_time_ns`) and the log time
+            passed to a write method, the wall clock, goes into the message as ``wall_ns``.
 
     The MCAP records are written by foxglove-sdk's writer (:func:`open_writer`); this class
     adds the topic contract and fast JSON text for vector messages.
@@ -309,8 +297,10 @@ class McapJsonWriter:
         *,
         chunk_size: int | None = DEFAULT_CHUNK_SIZE,
         compression: str = DEFAULT_COMPRESSION,
+        time_origin_ns: int | None = None,
     ) -> None:
         self.path = Path(path)
+        self._origin = time_origin_ns
         self._context, self._writer = open_writer(
             self.path, chunk_size=chunk_size, compression=compression
         )
@@ -363,13 +353,18 @@ class McapJsonWriter:
         if not isinstance(topic, str) or not topic.startswith("/") or len(topic) < 2:
             raise RecordingError(f"topic must be a string starting with '/', got {topic!r}")
 
-    def add_topic(self, topic: str, fields: Sequence[str] | None = None) -> None:
+    def add_topic(
+        self,
+        topic: str,
+        fields: Sequence[str] | None = None,
+        units: Mapping[str, str] | None = None,
+    ) -> None:
         """Register a vector topic; its messages carry ``k``, ``t``, ``values`` and ``fields``.
 
         With ``fields`` (one name per vector entry) every message also carries
         ``{field: values[i]}`` beside ``values``, and the schema names them, so Foxglove can
-        plot ``/a/y.x`` as well as ``/a/y.values[0]``. Registering a topic again with the
-        same fields does nothing.
+        plot ``/a/y.x`` as well as ``/a/y.values[0]``; ``units`` (field -> unit) go into the
+        schema's descriptions. Registering a topic again with the same fields does nothing.
 
         Raises:
             RecordingError: bad topic or field names, a name that clashes with ``k``/``t``/
@@ -398,7 +393,7 @@ class McapJsonWriter:
                     f"cannot register it with {names}"
                 )
             return
-        self._register(topic, vector_schema(topic, names), names)
+        self._register(topic, vector_schema(topic, names, units), names)
 
     def write(
         self,
@@ -475,10 +470,14 @@ class McapJsonWriter:
         entry = self._topics.get(topic)
         if entry is None:
             raise RecordingError(f"topic {topic!r} is not registered: call add_topic() first")
-        data = entry.vector_bytes(k, t, values)
         if type(log_time_ns) is not int or log_time_ns < 0:
             _check_log_time(log_time_ns)
             log_time_ns = int(log_time_ns)
+        if self._origin is None:
+            data = entry.vector_bytes(k, t, values)
+        else:
+            data = entry.vector_bytes(k, t, values, log_time_ns)
+            log_time_ns = experiment_log_time_ns(self._origin, t)
         entry.log(data, log_time_ns)
         self._count += 1
 
@@ -505,6 +504,7 @@ class McapJsonWriter:
         """
         self._check_open()
         topics = self._topics
+        origin = self._origin
         count = 0
         for topic, k, t, values, log_time_ns in rows:
             entry = topics.get(topic)
@@ -515,10 +515,14 @@ class McapJsonWriter:
                     )
                 self.add_topic(topic)
                 entry = topics[topic]
-            data = entry.vector_bytes(k, t, values)
             if type(log_time_ns) is not int or log_time_ns < 0:
                 _check_log_time(log_time_ns)
                 log_time_ns = int(log_time_ns)  # noqa: PLW2901 - a numpy integer
+            if origin is None:
+                data = entry.vector_bytes(k, t, values)
+            else:
+                data = entry.vector_bytes(k, t, values, log_time_ns)
+                log_time_ns = experiment_log_time_ns(origin, t)  # noqa: PLW2901
             entry.log(data, log_time_ns)
             count += 1
             self._count += 1
@@ -560,8 +564,13 @@ class McapJsonWriter:
         data: bytes,
         log_time_ns: int,
         schema: Mapping[str, Any] | None = None,
+        *,
+        t: float | None = None,
     ) -> None:
         """Write a JSON object that is already encoded (UTF-8, no NaN/Infinity: ``null``).
+
+        With an experiment clock (``time_origin_ns``) and ``t`` given, the log time is that
+        of ``t`` (the caller encodes ``wall_ns`` in ``data`` itself).
 
         For writers that build the JSON text of a frequent message themselves (templates are
         several times cheaper than building and encoding a dict). The topic is registered
@@ -581,9 +590,16 @@ class McapJsonWriter:
             entry = self._topics[topic]
         elif schema is not None and dict(schema) != entry.schema:
             raise RecordingError(f"topic {topic} is registered already with another schema")
+        if self._origin is not None and t is not None:
+            log_time_ns = experiment_log_time_ns(self._origin, t)
         self._add_encoded(entry, bytes(data), log_time_ns)
 
     def _add(self, entry: _Topic, message: Mapping[str, Any], log_time_ns: int) -> None:
+        t = message.get("t")
+        if self._origin is not None and isinstance(t, int | float) and "wall_ns" not in message:
+            _check_log_time(log_time_ns)
+            message = {**message, "wall_ns": int(log_time_ns)}
+            log_time_ns = experiment_log_time_ns(self._origin, float(t))
         data = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
         self._add_encoded(entry, data, log_time_ns)
 
@@ -591,6 +607,14 @@ class McapJsonWriter:
         _check_log_time(log_time_ns)
         entry.log(data, int(log_time_ns))
         self._count += 1
+
+    def add_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
+        """Write an MCAP metadata record ``name`` (string keys and values)."""
+        self._check_open()
+        try:
+            self._writer.write_metadata(name, dict(metadata))
+        except RuntimeError as exc:
+            raise RecordingError(f"writing metadata {name!r} to {self.path} failed: {exc}") from exc
 
     def flush(self) -> None:
         """Finish the chunk in progress and hand everything written so far to the OS.
@@ -698,6 +722,15 @@ def iter_messages(
                 yield topic, record.log_time, json.loads(record.data)
 
 
+def read_metadata(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
+    """The metadata records of an MCAP file by name (readable part of a truncated file)."""
+    return {
+        record.name: dict(record.metadata)
+        for record in _iter_records(path)
+        if isinstance(record, Metadata)
+    }
+
+
 def read_schemas(path: str | os.PathLike[str]) -> dict[str, dict[str, Any]]:
     """The JSON Schema of every topic in an MCAP file (readable part of a truncated file)."""
     schemas: dict[int, dict[str, Any]] = {}
@@ -753,6 +786,8 @@ def recover(source: str | os.PathLike[str], destination: str | os.PathLike[str])
             elif isinstance(record, McapMessage) and record.channel_id in logs:
                 logs[record.channel_id](record.data, record.log_time)
                 copied += 1
+            elif isinstance(record, Metadata):
+                writer.write_metadata(record.name, dict(record.metadata))
         closed = True
         writer.close()
     except RuntimeError as exc:  # foxglove-sdk's I/O errors (FoxgloveError)
