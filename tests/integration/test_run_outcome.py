@@ -26,19 +26,24 @@ RUN_TIMEOUT_S = 240
 ENV = {**os.environ, "PYTHONPATH": f"{HERE}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
 
 
-def hilswarm(*args: str, cwd: Path, timeout_s: float = RUN_TIMEOUT_S) -> tuple[int, str]:
-    """Run the CLI in its own process group (killed on timeout); exit status and output."""
+def finish(command: list[str], cwd: Path) -> tuple[int, str]:
+    """Run ``command`` in its own process group (killed after RUN_TIMEOUT_S); status, output."""
     process = subprocess.Popen(
-        [*CLI, *args], cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        command, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
         text=True, start_new_session=True,
     )  # fmt: skip
     try:
-        output, _ = process.communicate(timeout=timeout_s)
+        output, _ = process.communicate(timeout=RUN_TIMEOUT_S)
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)
         output, _ = process.communicate(timeout=10)
-        pytest.fail(f"hilswarm {' '.join(args)} did not finish in {timeout_s} s:\n{output}")
+        pytest.fail(f"{' '.join(command)} did not finish in {RUN_TIMEOUT_S} s:\n{output}")
     return process.returncode, output
+
+
+def hilswarm(*args: str, cwd: Path) -> tuple[int, str]:
+    """The CLI, in its own process group: exit status and output."""
+    return finish([*CLI, *args], cwd)
 
 
 def files(folder: Path) -> list[str]:
@@ -141,18 +146,9 @@ def in_small_tmpfs(size: str, folder: Path, script: str, keep: Path) -> tuple[in
         f"{script}\ncode=$?\nls -a {folder} > {keep}/listing\n"
         f"cp {folder}/*.mcap {keep}/ 2>/dev/null\nexit $code\n"
     )
-    process = subprocess.Popen(
-        ["unshare", "-m", "sh", "-c", wrapped], env=ENV, stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT, text=True, start_new_session=True, cwd=keep,
-    )  # fmt: skip
-    try:
-        output, _ = process.communicate(timeout=RUN_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        output, _ = process.communicate(timeout=10)
-        pytest.fail(f"did not finish in {RUN_TIMEOUT_S} s:\n{output}")
-    assert process.returncode != 99, output
-    return process.returncode, output
+    code, output = finish(["unshare", "-m", "sh", "-c", wrapped], keep)
+    assert code != 99, output
+    return code, output
 
 
 def test_a_full_disk_stops_the_run_safely_by_default(tmp_path: Path) -> None:
