@@ -132,6 +132,9 @@ class BlimpPlant(ContinuousPlant):
         mass_diagonal: diagonal of M [kg ×3, kg·m² ×3].
     """
 
+    #: :meth:`pose` is in the NED frame (z down), see :mod:`hilswarm.agents.mocap.frames`.
+    pose_frame = "ned"
+
     def __init__(self, params: BlimpParams = DEFAULT_BLIMP_PARAMS) -> None:
         if not isinstance(params, BlimpParams):
             raise PlantError(f"BlimpPlant needs BlimpParams, got {type(params).__name__}")
@@ -362,6 +365,9 @@ class BlimpPinPlant:
         pinout: pin numbers (default: Code Sample A.2).
         substeps: RK4 steps per ``dt``.
     """
+
+    #: :meth:`pose` is in the NED frame (z down), see :mod:`hilswarm.agents.mocap.frames`.
+    pose_frame = "ned"
 
     def __init__(
         self,
