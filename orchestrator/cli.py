@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "agent": ("agent", "start one agent process that joins a running experiment"),
     "new": ("new", "write a skeleton vehicle or device with its test and experiment file"),
     "calibrate": ("calibrate", "fit and plot a calibration table from measured pairs"),
+    "mocap": ("mocap", "list the bodies a mocap system sees, with rate and position"),
 }
 
 

@@ -138,6 +138,8 @@ class QualisysClient:
     async def _run(self, on_frame: Callable[[Frame], None], on_ready: Callable[[], None]) -> None:
         import qtm_rt  # noqa: PLC0415 - only the qualisys/sim systems need it
 
+        # qtm-rt logs a refused connection itself; it is reported here as an exception.
+        logging.getLogger("qtm_rt").setLevel(logging.CRITICAL)
         self._loop = asyncio.get_running_loop()
         self._stopped = asyncio.Event()
         if self._stop_requested.is_set():

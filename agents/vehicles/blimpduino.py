@@ -92,6 +92,8 @@ class Blimpduino(Vehicle):
         substeps: RK4 steps per tick of the simulated hardware.
     """
 
+    #: Outputs come from motion capture (``pose_source``): ``check`` wants a source of it.
+    needs_pose: ClassVar[bool] = True
     n_inputs: ClassVar[int] = 3
     n_outputs: ClassVar[int] = 4
     input_names: ClassVar[tuple[str, ...]] = ("thrust_left", "thrust_right", "thrust_angle")
