@@ -66,11 +66,14 @@ class Convention:
     def to_world(self, position: np.ndarray, rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position [system units] and attitude ``R_sys`` (body -> system) to the world frame.
 
-        Returns ``(p_world [m], R_world)`` with ``p_world = C p s`` and ``R_world = C R_sys``
-        (the body frame of a rigid body is whatever its definition in the system says).
+        Returns ``(p_world [m], R_world)`` with ``p_world = C p s`` and ``R_world = C R_sys
+        C^T``: the body frame a system defines (a body at rest has the identity attitude, its
+        "up" along the system's up axis) is turned the same way, so a body at rest is level
+        in the world frame too (roll = pitch = 0) whatever the system's up axis.
         """
         c = self.rotation
-        return c @ (np.asarray(position, dtype=np.float64) * self.metres_per_unit), c @ rotation
+        position = np.asarray(position, dtype=np.float64) * self.metres_per_unit
+        return c @ position, c @ np.asarray(rotation, dtype=np.float64) @ c.T
 
 
 _TO_WORLD: dict[str, np.ndarray] = {
