@@ -80,7 +80,8 @@ class SimSettings:
         latency_s: exposure -> packet sent [s].
         dropout_rate: probability per body and frame that an occlusion starts.
         dropout_frames: length of a random occlusion [frames].
-        occlusions: scripted occlusions, body -> ``(start_s, end_s)`` from the first frame.
+        occlusions: scripted occlusions, body -> ``(start_s, end_s)`` counted from the first
+            frame that has the body's true pose (the moment its plant started).
         seed: seed of the noise and dropout generator.
     """
 
@@ -302,6 +303,7 @@ class QtmSimulator:
         self._truth: dict[str, np.ndarray] = {}
         self._rng = np.random.default_rng(settings.seed)
         self._occluded_until = dict.fromkeys(settings.bodies, -1)
+        self._appeared: dict[str, float] = {}  # body -> elapsed time of its first truth [s]
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
@@ -416,8 +418,10 @@ class QtmSimulator:
 
     def _occluded(self, name: str, frame: int, elapsed_s: float) -> bool:
         window = self.settings.occlusions.get(name)
-        if window is not None and window[0] <= elapsed_s < window[1]:
-            return True
+        if window is not None and name in self._truth:
+            since = elapsed_s - self._appeared.setdefault(name, elapsed_s)
+            if window[0] <= since < window[1]:
+                return True
         if self.settings.dropout_rate:
             if frame <= self._occluded_until[name]:
                 return True

@@ -17,11 +17,11 @@ import pytest
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.mocap import message
+from hilswarm.agents.mocap.clients import QualisysClient
 from hilswarm.agents.mocap.config import MocapSettings
 from hilswarm.agents.mocap.pose_source import MocapPoseSource
 from hilswarm.agents.mocap.process import MocapProcess
 from hilswarm.agents.mocap.qtm_sim import QtmSimulator, SimSettings
-from hilswarm.agents.mocap.clients import QualisysClient
 from hilswarm.agents.telemetry import Telemetry
 
 EXPERIMENT = "mocap_bus"
@@ -121,7 +121,7 @@ def test_an_occlusion_longer_than_the_hold_means_lost_tracking(router: list[str]
 
         def lost() -> bool:
             pose = rig.source.pose()
-            latest = rig.source._latest  # noqa: SLF001 - what the source decided on
+            latest = rig.source._latest
             if np.all(np.isfinite(pose)) and latest is not None and latest[0].occluded:
                 occluded_but_held.append(latest[0].occluded)
             return not np.all(np.isfinite(pose))
@@ -156,7 +156,7 @@ def test_a_body_never_seen_is_named_with_the_visible_ones(router: list[str]) -> 
     rig.source.start_timeout_s = 1.5
     try:
         rig.sim.set_truth("f2", np.zeros(6))
-        wait_for(lambda: rig.source._status.get("visible") == ["f2"], "the status")  # noqa: SLF001
+        wait_for(lambda: rig.source._status.get("visible") == ["f2"], "the status")
         with pytest.raises(LookupError, match=r"'ghost' is not visible .* sees: f2"):
             rig.source.wait_first()
     finally:

@@ -48,7 +48,7 @@ def collect(client: QualisysClient, n: int) -> list[Frame]:
     def run() -> None:
         try:
             client.run(on_frame, lambda: None)
-        except BaseException as exc:  # noqa: BLE001 - handed to the test thread
+        except BaseException as exc:
             errors.append(exc)
 
     thread = threading.Thread(target=run, daemon=True)
@@ -185,7 +185,7 @@ def test_qtm_rt_directly_streams_six_d() -> None:
         await connection.stream_frames(components=["6d"], on_packet=on_packet)
         await asyncio.wait_for(done.wait(), TIMEOUT_S)
         await connection.stream_frames_stop()
-        header, bodies = got[-1].get_6d()
+        header, _bodies = got[-1].get_6d()
         connection.disconnect()
         return version.decode(), header.body_count, len(xml)
 
