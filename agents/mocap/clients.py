@@ -60,12 +60,15 @@ class Frame:
         received_s: arrival at this client [s, CLOCK_MONOTONIC].
         bodies: body name -> ``(position [system units], R body -> system)`` or ``None``
             when the body is not tracked in this frame.
+        skipped: frames that arrived before this one and were dropped unprocessed because the
+            consumer fell behind (a real-time consumer wants the newest frame, not a backlog).
     """
 
     number: int
     time_s: float
     received_s: float
     bodies: dict[str, tuple[np.ndarray, np.ndarray] | None]
+    skipped: int = 0
 
 
 class MocapClient(Protocol):
@@ -172,8 +175,20 @@ class QualisysClient:
             names = self.bodies
             clock = self._clock
 
+            loop = self._loop
+            pending: list[tuple[Any, float]] = []
+
             def on_packet(packet: Any) -> None:
-                received = clock()
+                # Runs once per packet while qtm-rt parses a chunk: only queue it; the newest
+                # packet of the chunk is handled right after (a backlog is dropped, counted).
+                if not pending:
+                    loop.call_soon(handle_newest)
+                pending.append((packet, clock()))
+
+            def handle_newest() -> None:
+                packet, received = pending[-1]
+                skipped = len(pending) - 1
+                pending.clear()
                 found = packet.get_6d()
                 entries = found[1] if found is not None else []
                 bodies: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
@@ -185,7 +200,10 @@ class QualisysClient:
                     # QTM's rotation matrix is column-major (RT protocol documentation).
                     r = np.array(rotation.matrix, dtype=np.float64).reshape(3, 3).T
                     bodies[name] = (p, r)
-                on_frame(Frame(packet.framenumber, packet.timestamp * 1e-6, received, bodies))
+                frame = Frame(
+                    packet.framenumber, packet.timestamp * 1e-6, received, bodies, skipped
+                )
+                on_frame(frame)
 
             await connection.stream_frames(
                 frames="allframes", components=["6d"], on_packet=on_packet
@@ -283,9 +301,13 @@ class MotionCaptureClient:
                 raise MocapServerLost(
                     f"{self.system} server at {self.host} silent for {silence_s:.2f} s"
                 )
-            for frame in batch:
-                self.bodies = tuple(sorted(set(self.bodies) | set(frame.bodies)))
-                on_frame(frame)
+            newest = batch[-1]  # a backlog is dropped (counted): the newest frame matters
+            self.bodies = tuple(sorted(set(self.bodies) | set(newest.bodies)))
+            on_frame(
+                Frame(
+                    newest.number, newest.time_s, newest.received_s, newest.bodies, len(batch) - 1
+                )
+            )
             if not ready:
                 ready = True
                 on_ready()

@@ -71,8 +71,10 @@ class Convention:
         "up" along the system's up axis) is turned the same way, so a body at rest is level
         in the world frame too (roll = pitch = 0) whatever the system's up axis.
         """
-        c = self.rotation
         position = np.asarray(position, dtype=np.float64) * self.metres_per_unit
+        if self.up_axis == "z":  # already the world's axes: no product (per frame and body)
+            return position, np.asarray(rotation, dtype=np.float64)
+        c = self.rotation
         return c @ position, c @ np.asarray(rotation, dtype=np.float64) @ c.T
 
 

@@ -137,6 +137,7 @@ class MocapProcess:
         self._last_state: tuple[Any, ...] = ()
         self._lock = threading.Lock()
         self.frames = 0
+        self.skipped = 0
 
     # -- status ------------------------------------------------------------------------------
 
@@ -151,6 +152,7 @@ class MocapProcess:
             "visible": visible,
             "missing": [n for n in self.bodies if n not in visible],
             "frames": self.frames,
+            "frames_skipped": self.skipped,
             "detail": detail,
         }
         if self._status_pub is not None:
@@ -178,6 +180,7 @@ class MocapProcess:
             if publisher is not None:
                 publisher.put(payload)
         self.frames += 1
+        self.skipped += frame.skipped
         if self._clock() >= self._status_due:
             self.publish_status("streaming")
 
