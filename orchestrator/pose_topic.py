@@ -62,6 +62,7 @@ POSE_IN_FRAME_SCHEMA: dict[str, Any] = {
         "k": {"type": "integer", "description": "tick index"},
         "t": {"type": "number", "description": "experiment time [s]"},
         "values": {"type": "array", "items": {"type": "number"}},
+        "wall_ns": {"type": "integer", "description": "wall clock of the record [ns]"},
     },
 }
 
@@ -79,7 +80,10 @@ def pose_topic(agent: str) -> str:
 
 
 def pose_message(k: int, t: float, row: Sequence[float], log_time_ns: int) -> dict[str, Any] | None:
-    """The ``foxglove.PoseInFrame`` message of one ``mocap`` row (``None``: no pose)."""
+    """The ``foxglove.PoseInFrame`` message of one ``mocap`` row (``None``: no pose).
+
+    ``timestamp`` is ``log_time_ns``, the wall clock [ns] at which the row was recorded.
+    """
     x, y, z, qx, qy, qz, qw = (
         row[_INDEX[name]] for name in ("x", "y", "z", "qx", "qy", "qz", "qw")
     )

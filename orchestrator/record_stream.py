@@ -517,13 +517,17 @@ class FrameRecorder:
         topic = pose_topic.pose_topic(agent)
         for k, t, values in samples:
             message = pose_topic.pose_message(k, t, values, log_ns)
-            if message is not None:
-                self.recorder.write_encoded(
-                    topic,
-                    json.dumps(message).encode(),
-                    log_time_ns=log_ns,
-                    schema=pose_topic.POSE_IN_FRAME_SCHEMA,
-                )
+            if message is None:
+                continue
+            if self._wall:
+                message["wall_ns"] = log_ns
+            self.recorder.write_encoded(
+                topic,
+                json.dumps(message).encode(),
+                log_time_ns=log_ns,
+                schema=pose_topic.POSE_IN_FRAME_SCHEMA,
+                t=t,
+            )
 
     def _telemetry_fields(self, topic: str, fields: tuple[str, ...]) -> tuple[str, ...] | None:
         """Register ``topic`` with ``fields`` on first sight; ``None``: record it plain."""
