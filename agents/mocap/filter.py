@@ -23,7 +23,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from hilswarm.agents.mocap.frames import wrap
 
 #: Filtered axes: x, y, z [m] and yaw [rad, unwrapped].
 AXES = 4
@@ -48,36 +47,136 @@ class FilterTuning:
     reset_after_s: float = 0.5
 
 
+class FilterBank:
+    """The filters of ``n`` bodies, run as arrays at once (see the module docstring).
+
+    One frame updates every body with one set of array operations (no Python loop per body):
+    at 16 bodies and 240 Hz that is the difference between keeping up and not.
+
+    Args:
+        n: number of bodies.
+        tuning: noise levels (the same for every body).
+    """
+
+    def __init__(self, n: int, tuning: FilterTuning | None = None) -> None:
+        self.n = int(n)
+        self.tuning = tuning or FilterTuning()
+        t = self.tuning
+        self._r = np.array([t.position_std_m**2] * 3 + [t.yaw_std_rad**2])
+        self._q = np.array([t.accel_psd] * 3 + [t.yaw_accel_psd])
+        shape = (self.n, AXES)
+        self._p = np.zeros(shape)  # position estimates (yaw unwrapped)
+        self._v = np.zeros(shape)  # velocity estimates
+        self._pp = np.zeros(shape)  # covariance entries P00, P01, P11 per body and axis
+        self._pv = np.zeros(shape)
+        self._vv = np.zeros(shape)
+        self._t = np.full(self.n, np.nan)  # time of each body's last measurement [s]
+        self._last_raw = np.zeros(shape)  # last measurement (yaw unwrapped)
+        self._attitude = np.zeros((self.n, 2))  # roll, pitch of the last measurement [rad]
+        #: Innovation of this frame's update ``[x, y, z (m), yaw (rad)]`` per body (NaN: none).
+        self.innovation = np.full(shape, np.nan)
+        #: Backward-difference velocity of the raw measurements ``[vx, vy, vz (m/s), yaw rate
+        #: (rad/s)]`` per body (NaN until two measurements).
+        self.velocity = np.full(shape, np.nan)
+
+    def update(self, t: float, poses: np.ndarray) -> np.ndarray:
+        """Take the frame of time ``t`` [s]: ``poses`` ``(n, 6)``, a NaN row for a body unseen.
+
+        Returns the estimates ``(n, 6)`` ``[x, y, z, roll, pitch, yaw]`` (world frame; yaw
+        wrapped), NaN rows for bodies never seen.
+        """
+        poses = np.asarray(poses, dtype=np.float64).reshape(self.n, 6)
+        seen = np.isfinite(poses).all(axis=1)
+        measured = poses[:, (0, 1, 2, 5)]
+        age = t - self._t  # NaN for bodies not started
+        with np.errstate(invalid="ignore"):
+            running = seen & (age <= self.tuning.reset_after_s)  # too long unseen: restart
+            start = seen & ~running
+            step = running & (age > 0.0)  # a repeated or reordered frame: nothing new
+        self.innovation[:] = np.nan
+        if start.any():
+            self._start(start, t, measured, poses)
+        if step.all():
+            self._step(slice(None), t, measured, poses, age)
+        elif step.any():
+            self._step(step, t, measured, poses, age)
+        return self.estimate()
+
+    def _start(self, rows: np.ndarray, t: float, measured: np.ndarray, poses: np.ndarray) -> None:
+        self._p[rows] = measured[rows]
+        self._v[rows] = 0.0
+        self._pp[rows], self._pv[rows], self._vv[rows] = self._r, 0.0, 1.0
+        self._t[rows] = t
+        self._last_raw[rows] = measured[rows]
+        self._attitude[rows] = poses[rows, 3:5]
+        self.innovation[rows] = 0.0
+        self.velocity[rows] = np.nan
+
+    def _step(
+        self,
+        rows: np.ndarray | slice,
+        t: float,
+        measured: np.ndarray,
+        poses: np.ndarray,
+        age: np.ndarray,
+    ) -> None:
+        z = measured[rows]
+        last = self._last_raw[rows]
+        z[:, 3] = last[:, 3] + wrap_array(z[:, 3] - last[:, 3])  # unwrap the heading
+        dt = age[rows][:, None]
+        self.velocity[rows] = (z - last) / dt
+        q = self._q
+        pp, pv, vv = self._pp[rows], self._pv[rows], self._vv[rows]
+        p = self._p[rows] + dt * self._v[rows]  # predict
+        pp = pp + 2 * dt * pv + dt * dt * vv + q * dt**3 / 3
+        pv = pv + dt * vv + q * dt**2 / 2
+        vv = vv + q * dt
+        innovation = z - p  # update
+        s = pp + self._r
+        k0, k1 = pp / s, pv / s
+        self._p[rows] = p + k0 * innovation
+        self._v[rows] = self._v[rows] + k1 * innovation
+        self._pp[rows], self._pv[rows], self._vv[rows] = (1 - k0) * pp, (1 - k0) * pv, vv - k1 * pv
+        self.innovation[rows] = innovation
+        self._t[rows] = t
+        self._last_raw[rows] = z
+        self._attitude[rows] = poses[rows, 3:5]
+
+    def estimate(self) -> np.ndarray:
+        """Estimates ``(n, 6)`` [m, rad; world frame, yaw wrapped]; NaN rows if never seen."""
+        p = self._p
+        out = np.column_stack([p[:, :3], self._attitude, wrap_array(p[:, 3])])
+        out[np.isnan(self._t)] = np.nan
+        return out
+
+    @property
+    def rate(self) -> np.ndarray:
+        """Filtered velocities ``(n, 4)`` ``[vx, vy, vz (m/s), yaw rate (rad/s)]``."""
+        out = self._v.copy()
+        out[np.isnan(self._t)] = np.nan
+        return out
+
+
+def wrap_array(angles: np.ndarray) -> np.ndarray:
+    """Angles [rad] wrapped into ``[-pi, pi)`` (element-wise)."""
+    return (angles + math.pi) % (2.0 * math.pi) - math.pi
+
+
 class PoseFilter:
-    """One body's filter (see the module docstring).
+    """One body's filter: a :class:`FilterBank` of one, with per-body shapes.
 
     Args:
         tuning: noise levels.
     """
 
     def __init__(self, tuning: FilterTuning | None = None) -> None:
-        self.tuning = tuning or FilterTuning()
-        t = self.tuning
-        self._r = np.array([t.position_std_m**2] * 3 + [t.yaw_std_rad**2])
-        self._q = np.array([t.accel_psd] * 3 + [t.yaw_accel_psd])
-        self._p = np.zeros(AXES)  # position estimates (yaw unwrapped)
-        self._v = np.zeros(AXES)  # velocity estimates
-        self._pp = np.zeros(AXES)  # covariance entries P00, P01, P11 per axis
-        self._pv = np.zeros(AXES)
-        self._vv = np.zeros(AXES)
-        self._t: float | None = None  # time of the last measurement [s]
-        self._last_raw: np.ndarray | None = None  # last measurement (yaw unwrapped)
-        self._attitude = np.zeros(2)  # roll, pitch of the last measurement [rad]
-        #: Innovation of the last update ``[x, y, z (m), yaw (rad)]`` (NaN before/without one).
-        self.innovation = np.full(AXES, np.nan)
-        #: Backward-difference velocity of the raw measurements ``[vx, vy, vz (m/s), yaw rate
-        #: (rad/s)]`` (NaN until two measurements).
-        self.velocity = np.full(AXES, np.nan)
+        self._bank = FilterBank(1, tuning)
+        self.tuning = self._bank.tuning
 
     @property
     def started(self) -> bool:
         """True once a measurement was taken (and not reset since)."""
-        return self._t is not None
+        return bool(np.isfinite(self._bank._t[0]))
 
     def update(self, t: float, pose: np.ndarray | None) -> np.ndarray:
         """Take the frame of time ``t`` [s]: a measured pose, or ``None`` when occluded.
@@ -85,59 +184,24 @@ class PoseFilter:
         Returns the estimate ``[x, y, z, roll, pitch, yaw]`` (world frame; yaw wrapped), NaN
         while the filter has never seen the body.
         """
-        if pose is None:
-            self.innovation = np.full(AXES, np.nan)
-            return self.estimate()
-        pose = np.asarray(pose, dtype=np.float64)
-        measured = np.array([pose[0], pose[1], pose[2], pose[5]])
-        if self._t is not None and t - self._t > self.tuning.reset_after_s:
-            self._t = None  # too long unseen: start again from this measurement
-        if self._t is None:
-            self._start(t, measured, pose)
-            return self.estimate()
-        dt = t - self._t
-        if not dt > 0.0:  # a repeated or reordered frame: nothing new to learn
-            return self.estimate()
-        last = measured if self._last_raw is None else self._last_raw  # set with self._t
-        measured[3] = last[3] + wrap(measured[3] - last[3])  # unwrap the heading
-        self.velocity = (measured - last) / dt
-        self._predict(dt)
-        innovation = measured - self._p
-        s = self._pp + self._r
-        k0, k1 = self._pp / s, self._pv / s
-        self._p = self._p + k0 * innovation
-        self._v = self._v + k1 * innovation
-        pp, pv, vv = self._pp, self._pv, self._vv
-        self._pp, self._pv, self._vv = (1 - k0) * pp, (1 - k0) * pv, vv - k1 * pv
-        self.innovation = innovation
-        self._t, self._last_raw = t, measured
-        self._attitude = pose[3:5].copy()
-        return self.estimate()
-
-    def _start(self, t: float, measured: np.ndarray, pose: np.ndarray) -> None:
-        self._p, self._v = measured.copy(), np.zeros(AXES)
-        self._pp, self._pv, self._vv = self._r.copy(), np.zeros(AXES), np.full(AXES, 1.0)
-        self._t, self._last_raw = t, measured
-        self._attitude = pose[3:5].copy()
-        self.innovation = np.zeros(AXES)
-        self.velocity = np.full(AXES, np.nan)
-
-    def _predict(self, dt: float) -> None:
-        q = self._q
-        pp, pv, vv = self._pp, self._pv, self._vv
-        self._p = self._p + dt * self._v
-        self._pp = pp + 2 * dt * pv + dt * dt * vv + q * dt**3 / 3
-        self._pv = pv + dt * vv + q * dt**2 / 2
-        self._vv = vv + q * dt
+        row = np.full((1, 6), np.nan) if pose is None else np.asarray(pose, dtype=np.float64)
+        return self._bank.update(t, row.reshape(1, 6))[0]
 
     def estimate(self) -> np.ndarray:
-        """``[x, y, z, roll, pitch, yaw]`` [m, rad; world frame, yaw wrapped]; NaN if unstarted."""
-        if self._t is None:
-            return np.full(6, np.nan)
-        p = self._p
-        return np.array([p[0], p[1], p[2], self._attitude[0], self._attitude[1], wrap(p[3])])
+        """``[x, y, z, roll, pitch, yaw]`` [m, rad; world frame, yaw wrapped]; NaN if unseen."""
+        return self._bank.estimate()[0]
+
+    @property
+    def innovation(self) -> np.ndarray:
+        """Innovation of the last update ``[x, y, z (m), yaw (rad)]`` (NaN without one)."""
+        return self._bank.innovation[0].copy()
+
+    @property
+    def velocity(self) -> np.ndarray:
+        """Backward-difference velocity ``[vx, vy, vz (m/s), yaw rate (rad/s)]``."""
+        return self._bank.velocity[0].copy()
 
     @property
     def rate(self) -> np.ndarray:
         """Filtered velocity ``[vx, vy, vz (m/s), yaw rate (rad/s)]``."""
-        return self._v.copy() if self._t is not None else np.full(AXES, math.nan)
+        return self._bank.rate[0]

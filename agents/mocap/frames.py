@@ -77,6 +77,21 @@ class Convention:
         c = self.rotation
         return c @ position, c @ np.asarray(rotation, dtype=np.float64) @ c.T
 
+    def poses(self, positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """World poses ``(n, 6)`` of ``n`` bodies: positions ``(n, 3)`` [system units] and
+        attitudes ``(n, 3, 3)`` (body -> system), as :meth:`to_world` and :func:`pose_from` do
+        for one (array operations, no loop per body; NaN rows stay NaN)."""
+        p = np.asarray(positions, dtype=np.float64) * self.metres_per_unit
+        r = np.asarray(rotations, dtype=np.float64)
+        if self.up_axis != "z":
+            c = self.rotation
+            p = p @ c.T
+            r = c @ r @ c.T
+        pitch = np.arcsin(np.clip(-r[:, 2, 0], -1.0, 1.0))
+        roll = np.arctan2(r[:, 2, 1], r[:, 2, 2])
+        yaw = (np.arctan2(r[:, 1, 0], r[:, 0, 0]) + math.pi) % (2.0 * math.pi) - math.pi
+        return np.column_stack([p, roll, pitch, yaw])
+
 
 _TO_WORLD: dict[str, np.ndarray] = {
     "z": np.eye(3),

@@ -71,6 +71,20 @@ def encode(body: BodyPose) -> bytes:
     )
 
 
+def encode_row(
+    frame: int,
+    frame_time_s: float,
+    received_s: float,
+    source_latency_s: float,
+    *,
+    occluded: int,
+    values: list[float],
+) -> bytes:
+    """The message bytes from plain numbers: ``values`` = raw (6), pose (6), velocity (4),
+    innovation (4) (the mocap process's per-frame path: no arrays per body)."""
+    return _LAYOUT.pack(frame, frame_time_s, received_s, source_latency_s, occluded, 0, *values)
+
+
 def decode(payload: bytes | bytearray | memoryview) -> BodyPose:
     """Inverse of :func:`encode`.
 

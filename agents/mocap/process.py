@@ -45,8 +45,8 @@ from hilswarm.agents.mocap.clients import (
     make_client,
 )
 from hilswarm.agents.mocap.config import MocapSettings
-from hilswarm.agents.mocap.filter import FilterTuning, PoseFilter
-from hilswarm.agents.mocap.frames import convention, pose_from
+from hilswarm.agents.mocap.filter import FilterBank, FilterTuning
+from hilswarm.agents.mocap.frames import convention
 
 logger = logging.getLogger(__name__)
 
@@ -62,36 +62,6 @@ POSE_QOS: dict[str, Any] = {
     "priority": zenoh.Priority.REAL_TIME,
     "express": True,
 }
-
-
-class BodyTracker:
-    """One body: the filter, the occlusion count and the message (no bus)."""
-
-    def __init__(self, tuning: FilterTuning) -> None:
-        self.filter = PoseFilter(tuning)
-        self.occluded = 0
-        self.seen = False
-
-    def update(self, frame: Frame, pose: np.ndarray | None, source_latency_s: float) -> bytes:
-        """Take ``frame``'s measurement (world pose or ``None``) and encode the message."""
-        estimate = self.filter.update(frame.time_s, pose)
-        if pose is None:
-            self.occluded += 1
-        else:
-            self.occluded, self.seen = 0, True
-        return message.encode(
-            message.BodyPose(
-                frame=frame.number,
-                frame_time_s=frame.time_s,
-                received_s=frame.received_s,
-                source_latency_s=source_latency_s,
-                occluded=self.occluded if self.seen else max(1, self.occluded),
-                raw=pose if pose is not None else np.full(6, np.nan),
-                pose=estimate,
-                velocity=self.filter.velocity,
-                innovation=self.filter.innovation,
-            )
-        )
 
 
 class MocapProcess:
@@ -128,7 +98,12 @@ class MocapProcess:
         tuning = FilterTuning(
             position_std_m=settings.position_std_m, yaw_std_rad=settings.yaw_std_rad
         )
-        self.trackers = {name: BodyTracker(tuning) for name in self.bodies}
+        n = len(self.bodies)
+        self.filters = FilterBank(n, tuning)
+        self.occluded = np.zeros(n, dtype=np.int64)  # consecutive frames unseen, per body
+        self.seen = np.zeros(n, dtype=bool)  # seen at least once
+        self._positions = np.full((n, 3), np.nan)  # this frame's measurements
+        self._rotations = np.full((n, 3, 3), np.nan)
         # The simulator stamps frames with this host's CLOCK_MONOTONIC: latency is measurable.
         self._shared_clock = settings.system == "sim"
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -143,7 +118,7 @@ class MocapProcess:
 
     def publish_status(self, state: str, detail: str = "") -> None:
         """Publish the status (JSON): state, bodies listed by the system, visible, missing."""
-        visible = [n for n, t in self.trackers.items() if t.seen and t.occluded == 0]
+        visible = [n for i, n in enumerate(self.bodies) if self.seen[i] and not self.occluded[i]]
         status = {
             "state": state,
             "system": self.settings.system,
@@ -163,22 +138,38 @@ class MocapProcess:
     # -- frames ------------------------------------------------------------------------------
 
     def on_frame(self, frame: Frame) -> None:
-        """Filter and publish every body of ``frame`` (runs on the client's thread)."""
+        """Filter and publish every body of ``frame`` (runs on the client's thread).
+
+        Every body at once, as arrays: the frame mapping, the filters, the occlusion counts;
+        then one message and one put per body.
+        """
         latency = frame.received_s - frame.time_s if self._shared_clock else 0.0
-        to_world = self._convention.to_world
-        for name, tracker in self.trackers.items():
-            entry = frame.bodies.get(name)
-            pose = None
+        positions, rotations = self._positions, self._rotations
+        positions[:] = np.nan
+        found = frame.bodies
+        for i, name in enumerate(self.bodies):
+            entry = found.get(name)
             if entry is not None:
-                position, rotation = entry
-                p, r = to_world(position, rotation)
-                pose = pose_from(p, r)
-                if not np.all(np.isfinite(pose)):
-                    pose = None
-            payload = tracker.update(frame, pose, latency)
+                positions[i], rotations[i] = entry
+        raw = self._convention.poses(positions, rotations)
+        visible = np.isfinite(raw).all(axis=1)
+        raw[~visible] = np.nan
+        estimates = self.filters.update(frame.time_s, raw)
+        self.occluded = np.where(visible, 0, self.occluded + 1)
+        self.seen |= visible
+        occluded = np.where(self.seen, self.occluded, np.maximum(self.occluded, 1)).tolist()
+        rows = np.concatenate(
+            [raw, estimates, self.filters.velocity, self.filters.innovation], axis=1
+        ).tolist()
+        number, time_s, received = frame.number, frame.time_s, frame.received_s
+        for i, name in enumerate(self.bodies):
             publisher = self._publishers.get(name)
             if publisher is not None:
-                publisher.put(payload)
+                publisher.put(
+                    message.encode_row(
+                        number, time_s, received, latency, occluded=occluded[i], values=rows[i]
+                    )
+                )
         self.frames += 1
         self.skipped += frame.skipped
         if self._clock() >= self._status_due:
