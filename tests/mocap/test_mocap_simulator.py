@@ -7,6 +7,7 @@ own Python SDK (through :class:`QualisysClient`) or with raw RT packets; every w
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 import socket
 import struct
@@ -71,7 +72,7 @@ def test_the_real_client_reads_bodies_poses_rate_and_occlusion() -> None:
     assert client.bodies == ("frisbee1", "blimp1")
     assert client.rate_hz == 200.0
     # None lost on TCP: a frame the client dropped (it fell behind) is counted in `skipped`.
-    for previous, frame in zip(frames, frames[1:], strict=False):
+    for previous, frame in itertools.pairwise(frames):
         assert frame.number - previous.number == frame.skipped + 1, (previous, frame)
     last = frames[-1]
     assert last.bodies["blimp1"] is None  # QTM's NaN body
