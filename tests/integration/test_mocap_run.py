@@ -18,7 +18,7 @@ import pytest
 from swarm_harness import (
     REPO,
     RunProcess,
-    child_pids,
+    children_running,
     connect_spy,
     free_port,
     read_recording,
@@ -124,15 +124,7 @@ def test_the_mocap_server_lost_stops_the_run_and_no_stale_pose_is_used(
     run.remember_agents(3)
 
     def simulator() -> list[int]:
-        found = []
-        for pid in child_pids(run.process.pid):
-            try:
-                command = Path(f"/proc/{pid}/cmdline").read_bytes()
-            except OSError:
-                continue
-            if b"hilswarm.agents.mocap.sim_process" in command:
-                found.append(pid)
-        return found
+        return children_running(run.process.pid, b"hilswarm.agents.mocap.sim_process")
 
     wait_for(lambda: bool(simulator()), 60, "the mocap simulator process")
     spy = connect_spy(run, "lead_follow_mocap")
