@@ -338,9 +338,12 @@ class McapJsonWriter:
             raise RecordingError(f"MCAP writer for {self.path} is closed")
 
     def _register(self, topic: str, schema: dict[str, Any], fields: tuple[str, ...] | None) -> None:
+        title = str(schema.get("title", ""))
+        # A Foxglove well-known schema keeps its name (foxglove.PoseInFrame): panels key on it.
+        name = title if title.startswith("foxglove.") else topic
         channel = Channel(
             topic,
-            schema=Schema(name=topic, encoding="jsonschema", data=json.dumps(schema).encode()),
+            schema=Schema(name=name, encoding="jsonschema", data=json.dumps(schema).encode()),
             message_encoding="json",
             context=self._context,
         )

@@ -41,6 +41,7 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
+from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.segments import existing_segments
@@ -219,10 +220,14 @@ def run(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     summary: RunSummary | None = None
     error = ""
+    mocap = MocapRunner(experiment, endpoints) if experiment.mocap is not None else None
     try:
         manager.open()
         if gateway is not None:
             display.log(f"XBee gateway: {gateway.start()}")
+        if mocap is not None:
+            mocap.start()
+            mocap.wait_ready()
         launcher.start_all(
             [
                 agent_config_for(experiment, n)
@@ -239,14 +244,21 @@ def run(args: argparse.Namespace) -> int:
         recorder.publish(replace=args.force)  # the run begins: the recording takes its name
         summary = manager.run()
     except (
-        ManagerError, AgentProcessError, RecordingError, GatewayProcessError, zenoh.ZError,
-    ) as exc:  # fmt: skip
+        ManagerError,
+        AgentProcessError,
+        RecordingError,
+        GatewayProcessError,
+        MocapError,
+        zenoh.ZError,
+    ) as exc:
         error = str(exc)
     finally:
         display.finish()
         launcher.stop()
         if gateway is not None:
             gateway.stop()
+        if mocap is not None:
+            mocap.stop()
         manager.close()
         recorder.close()
         for signum, handler in previous.items():
