@@ -215,7 +215,6 @@ class RecorderProcess:
         self._broken = False  # the pipe of the current process broke
         self._ready = threading.Event()
         self._waited = False  # write() waited for room once (logged once)
-        self._generation = 0
         self._segments: list[Path] = [self.path]
         self._dead_segments: list[Path] = []
         self._failures: list[str] = []
@@ -227,7 +226,11 @@ class RecorderProcess:
         self.write_waits = 0
         self.restarts = 0
         self.resent_records = 0
-        self.process = self._spawn(self._staging or self.path)
+        self._setups: dict[int, bytes] = {}  # set-up message of each process started
+        self._generation = -1
+        first = self._spawn(self._staging or self.path)
+        with self._changed:
+            self._install(first)
         self.pipe_size = _enlarge_pipe(self._fd, PIPE_SIZE)
         self._writer = threading.Thread(
             target=self._hand_over, name=f"recorder pipe {self.path.name}", daemon=True
@@ -240,8 +243,21 @@ class RecorderProcess:
 
     # -- the process -------------------------------------------------------------------------
 
+    def _install(self, process: subprocess.Popen[bytes]) -> None:
+        """Make ``process`` the current one (call with the lock held)."""
+        stdin = process.stdin
+        if stdin is None:  # pragma: no cover
+            raise RecordingError("the recorder process has no pipes")
+        self.process = process
+        self._fd = stdin.fileno()
+        self._setup = self._setups.pop(process.pid)
+        self._generation += 1
+        self._broken = False
+        self._stdin_closed = False
+        self._changed.notify_all()
+
     def _spawn(self, path: Path) -> subprocess.Popen[bytes]:
-        """Start a recorder process on ``path`` (call with the lock held, or before threads)."""
+        """Start a recorder process on ``path``; :meth:`_install` makes it the current one."""
         setup = pickle.dumps(
             {
                 "path": str(path),
@@ -257,10 +273,7 @@ class RecorderProcess:
             stdout=subprocess.PIPE,
             start_new_session=True,
         )
-        if process.stdin is None or process.stdout is None:  # pragma: no cover
-            raise RecordingError("the recorder process has no pipes")
-        self._fd = process.stdin.fileno()
-        self._setup = _LENGTH.pack(len(setup)) + setup
+        self._setups[process.pid] = _LENGTH.pack(len(setup)) + setup
         return process
 
     def wait_ready(self, timeout_s: float = DEFAULT_READY_TIMEOUT_S) -> None:
@@ -378,12 +391,17 @@ class RecorderProcess:
                     f"{what}{at}; continued in {new.name} ({resent} records sent again)"
                 )
                 logger.warning("%s; continuing in %s", what, new)
-                self._generation += 1
-                self._broken = False
-                self._stdin_closed = False
-                self.process = self._spawn(new)
-                _enlarge_pipe(self._fd, PIPE_SIZE)
-                self._changed.notify_all()
+        if not failure:  # start the new process outside the lock: write() never waits for it
+            try:
+                replacement = self._spawn(new)
+            except OSError as exc:
+                failure = f"{what}{at}; recording stopped: no new recorder process: {exc}"
+                with self._changed:
+                    self._give_up(failure)
+            else:
+                _enlarge_pipe(replacement.stdin.fileno(), PIPE_SIZE)  # type: ignore[union-attr]
+                with self._changed:
+                    self._install(replacement)
                 return True
         logger.error("%s", failure)
         if self._on_failure is not None:
