@@ -444,6 +444,39 @@ class SimavrBoard(Board):
         """SET_ID over the wire; returns the id read back from EEPROM."""
         return self._require_serial().set_board_id(board_id)
 
+    @property
+    def link_timeout_s(self) -> float:  # type: ignore[override]
+        """How long a lost link is re-tried [s] (the serial link's ``reconnect_timeout_s``)."""
+        serial = self.serial
+        return serial.reconnect_timeout_s if serial is not None else 0.0
+
+    def request_estop(self) -> bool:
+        """ESTOP on the serial link's own path (see :meth:`SerialBoard.request_estop`)."""
+        serial = self.serial
+        return serial.request_estop() if serial is not None else False
+
+    def abort(self) -> None:
+        """Make a blocked request give up (see :meth:`SerialBoard.abort`)."""
+        serial = self.serial
+        if serial is not None:
+            serial.abort()
+
+    def reconnect(self) -> BoardInfo:
+        """One attempt to re-establish the link; a harness that died is started again first.
+
+        A new harness is a new board (it boots, a new pty): the serial link re-opens on it,
+        handshakes and re-applies the configuration; injected inputs are set again on the next
+        plant step.
+        """
+        serial = self._require_serial()
+        process = self.harness.process
+        if process is None or process.poll() is not None:
+            self.harness.stop()
+            serial.port_url = self.harness.start()
+            self._volts.clear()
+            self._last_t_us = None
+        return serial.reconnect()
+
     def close(self) -> None:
         """Close the link and stop the harness (quit, SIGTERM, SIGKILL). Idempotent."""
         serial, self.serial = self.serial, None
