@@ -143,6 +143,10 @@ class _QuitRequestedError(HilswarmError, RuntimeError):
     """Internal: the worker was told to quit while riding out a board link fault."""
 
 
+class _LinkDownError(HilswarmError, ConnectionError):
+    """Internal: the board link failed for good; ticks answer without it."""
+
+
 # ---------------------------------------------------------------------------------------------
 # The agent
 # ---------------------------------------------------------------------------------------------
@@ -201,6 +205,7 @@ class Agent:
         self.malformed: dict[str, int] = dict.fromkeys(INPUT_KEYS, 0)
         self.skipped = 0  # ticks this agent missed in total
         self.link_faults = 0  # board link faults ridden out (or not)
+        self._link_down = False  # the board link failed for good: no more exchanges
         self._work: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._wake_pending = False
         self._worker: threading.Thread | None = None
@@ -553,6 +558,17 @@ class Agent:
         """Take the built vehicle/board/controller (``run`` does this with its factory)."""
         self.hardware = hardware
         self._u = np.zeros(int(hardware.vehicle.n_inputs))
+        add_listener = getattr(hardware.board, "add_link_listener", None)
+        if add_listener is not None:
+            add_listener(self._on_link_event)
+
+    def _on_link_event(self, kind: str, detail: str) -> None:
+        """A board link event, on the thread whose request met it (the worker's exchange)."""
+        if kind == "disconnected" and self.lifecycle.state_id == "running":
+            self.link_faults += 1
+            self._transition("degrade", f"board link lost at tick {self.k + 1}: {detail}")
+        elif kind == "reconnected":
+            self._transition("recover", f"board link back: {detail}")
 
     # -- bus callbacks: decode and hand off ------------------------------------------------
 
@@ -746,6 +762,8 @@ class Agent:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
                 self._u = u_new
+            if self._link_down:
+                raise _LinkDownError("the board link is down")
             if k > 0:  # tick 0 senses what connect() primed: the initial state
                 try:
                     vehicle.exchange()
@@ -758,9 +776,16 @@ class Agent:
                 y = np.asarray(y, dtype=np.float64)
         except _QuitRequestedError:
             raise
+        except _LinkDownError:  # safe already; no data, and no wait on the dead link
+            t2 = clock()
+            y = np.full(int(vehicle.n_outputs), np.nan)
         except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
             t2 = clock()
-            logger.exception("%s: vehicle/board failed at tick %d", self.config.name, k)
+            if isinstance(exc, LINK_FAULTS):
+                logger.error("%s: board link failed at tick %d: %s", self.config.name, k, exc)
+                self._link_down = True
+            else:
+                logger.exception("%s: vehicle/board failed at tick %d", self.config.name, k)
             self._go_safe(f"vehicle/board failed at tick {k}: {type(exc).__name__}: {exc}")
             y = np.full(int(vehicle.n_outputs), np.nan)
         t3 = clock()
@@ -786,11 +811,13 @@ class Agent:
         """
         board = self.hardware.board if self.hardware is not None else None
         timeout = float(getattr(board, "link_timeout_s", 0.0) or 0.0)
-        if board is None or timeout <= 0 or self._quitting.is_set():
+        state = self.lifecycle.state_id
+        if board is None or timeout <= 0 or self._quitting.is_set() or state == "safe":
             raise fault
-        self.link_faults += 1
         start = self._clock()
-        self._transition("degrade", f"board link fault at tick {k}: {fault}")
+        if state != "degraded":  # (a lost port made it degraded already)
+            self.link_faults += 1
+            self._transition("degrade", f"board link fault at tick {k}: {fault}")
         last: BoardError = fault
         attempts = 0
         while True:
@@ -841,13 +868,16 @@ class Agent:
             return
         hw = self.hardware
         if hw is not None:
+            if self._link_down and hw.board is not None:
+                hw.board.abort()  # no request may wait on the dead link; its watchdog acts
             try:
                 if not getattr(hw.vehicle, "safe_mode", False):
                     if fault:
                         hw.vehicle.enter_safe_mode(reason)
                     else:
                         hw.vehicle.enter_safe_mode(reason, fault=False)
-                hw.vehicle.exchange()  # push the safe values to the board now
+                if not self._link_down:
+                    hw.vehicle.exchange()  # push the safe values to the board now
             except HilswarmError as exc:
                 logger.error("%s: could not make outputs safe: %s", self.config.name, exc)
         self._transition("enter_safe", reason)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import enum
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Self
@@ -220,6 +220,11 @@ class Board(ABC):
         :meth:`estop`, on the board's own thread, does it.
         """
         return False
+
+    def add_link_listener(self, listener: Callable[[str, str], None]) -> None:
+        """Call ``listener(kind, detail)`` on link events (``disconnected``, ``reconnected``...),
+        on the thread whose request met them. Default: a link that cannot fail has none."""
+        return
 
     def abort(self) -> None:
         """Make a blocked request give up soon (any thread). Default: nothing can block."""

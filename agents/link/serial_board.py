@@ -261,6 +261,7 @@ class SerialBoard(Board):
         self._write_lock = threading.Lock()
         self._aborted = threading.Event()
         self._estop_requested = False
+        self._link_listeners: list[Callable[[str, str], None]] = []
 
     # ------------------------------------------------------------------ events
     def _event(self, kind: str, detail: str) -> None:
@@ -270,6 +271,8 @@ class SerialBoard(Board):
         _log.log(level, "%s: %s: %s", self.url, kind, detail)
         if self.on_event is not None:
             self.on_event(event)
+        for listener in self._link_listeners:
+            listener(kind, detail)
 
     # ------------------------------------------------------------------ port
     def _open_port(self) -> None:
@@ -582,6 +585,10 @@ class SerialBoard(Board):
                 self._write_lock.release()
         self._event("estop_sent", "ESTOP sent on the e-stop path")
         return True
+
+    def add_link_listener(self, listener: Callable[[str, str], None]) -> None:
+        """Call ``listener(kind, detail)`` with every :class:`LinkEvent`, after ``on_event``."""
+        self._link_listeners.append(listener)
 
     def abort(self) -> None:
         """Make a blocked request or reconnection give up within one poll period (any thread).

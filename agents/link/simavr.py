@@ -346,6 +346,7 @@ class SimavrBoard(Board):
         self._modes: dict[int, PinMode] = {}
         self._last_t_us: int | None = None
         self._volts: dict[int, float] = {}
+        self._link_listeners: list[Callable[[str, str], None]] = []
 
     @property
     def events(self) -> list[LinkEvent]:
@@ -362,6 +363,8 @@ class SimavrBoard(Board):
         if self.serial is None:
             pty = self.harness.start()
             self.serial = SerialBoard(pty, **self._serial_options)
+            for listener in self._link_listeners:
+                self.serial.add_link_listener(listener)
         try:
             return self.serial.open()
         except BaseException:
@@ -455,6 +458,12 @@ class SimavrBoard(Board):
         serial = self.serial
         return serial.request_estop() if serial is not None else False
 
+    def add_link_listener(self, listener: Callable[[str, str], None]) -> None:
+        """Link events of the serial link (see :meth:`SerialBoard.add_link_listener`)."""
+        self._link_listeners.append(listener)
+        if self.serial is not None:
+            self.serial.add_link_listener(listener)
+
     def abort(self) -> None:
         """Make a blocked request give up (see :meth:`SerialBoard.abort`)."""
         serial = self.serial
@@ -465,16 +474,18 @@ class SimavrBoard(Board):
         """One attempt to re-establish the link; a harness that died is started again first.
 
         A new harness is a new board (it boots, a new pty): the serial link re-opens on it,
-        handshakes and re-applies the configuration; injected inputs are set again on the next
-        plant step.
+        handshakes and re-applies the configuration, and the input voltages injected before
+        are put on its pins again (what is wired to the board stays wired).
         """
         serial = self._require_serial()
         process = self.harness.process
         if process is None or process.poll() is not None:
             self.harness.stop()
             serial.port_url = self.harness.start()
-            self._volts.clear()
             self._last_t_us = None
+            volts, self._volts = self._volts, {}
+            for pin, value in volts.items():
+                self.set_input_voltage(pin, value)
         return serial.reconnect()
 
     def close(self) -> None:
