@@ -284,8 +284,8 @@ class Agent:
         """The input and fault counters of status messages (non-zero ones only)."""
         with self._engine_lock:
             dropped = dict(self.engine.counters())
+            malformed = {key: n for key, n in self.malformed.items() if n}
         fields: dict[str, Any] = {}
-        malformed = {key: n for key, n in self.malformed.items() if n}
         if malformed:
             fields["malformed"] = malformed
         if dropped:
@@ -572,6 +572,10 @@ class Agent:
 
     # -- bus callbacks: decode and hand off ------------------------------------------------
 
+    def _count_malformed(self, key: str) -> None:
+        with self._engine_lock:  # several bus threads may count at once
+            self.malformed[key] += 1
+
     def _wake(self) -> None:
         """Wake the worker (one token at a time: the worker takes every ready tick)."""
         if not self._wake_pending:
@@ -586,7 +590,7 @@ class Agent:
         try:
             k, _t, values = bus.decode_vector(payload)
         except bus.BusMessageError:
-            self.malformed["y"] += 1
+            self._count_malformed("y")
             return
         values.flags.writeable = False  # shared with the controller: read-only, no copy
         with self._engine_lock:
@@ -605,7 +609,7 @@ class Agent:
         try:
             tick = bus.decode_tick(payload)
         except bus.BusMessageError:
-            self.malformed["tick"] += 1
+            self._count_malformed("tick")
             return
         arrived = self._clock() if arrived is None else arrived
         with self._engine_lock:
@@ -620,7 +624,7 @@ class Agent:
         try:
             command, reason = bus.decode_control(payload)
         except bus.BusMessageError:
-            self.malformed["control"] += 1
+            self._count_malformed("control")
             return
         if command is bus.ControlCommand.ESTOP:
             self._estop_now(reason or "e-stop")
@@ -895,7 +899,7 @@ class Agent:
             try:
                 request = bus.decode_json(query.payload.to_bytes() if query.payload else b"{}")
             except bus.BusMessageError:
-                self.malformed["set"] += 1
+                self._count_malformed("set")
                 raise
             changes = request.get("params")
             if not isinstance(changes, dict) or not changes:

@@ -437,7 +437,11 @@ class SimavrBoard(Board):
 
     def read_outputs(self) -> dict[int, int]:
         """Wire value of every configured output as the firmware drives it (from the pins)."""
-        return outputs_from_state(self.harness.state(), self._modes)
+        return self.read_outputs_from(self.harness.state())
+
+    def read_outputs_from(self, state: Mapping[str, Any]) -> dict[int, int]:
+        """Like :meth:`read_outputs`, from a ``state`` snapshot taken already."""
+        return outputs_from_state(state, self._modes)
 
     def estop(self) -> TickReply:
         """ESTOP over the wire."""

@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from hilswarm.agents.control import Controller, TickInput
+from hilswarm.agents.devices import Battery, HBridgeMotor
 from hilswarm.agents.vehicle import Vehicle
 
 
@@ -96,8 +97,6 @@ class ToyCart(Vehicle):
     }
 
     def setup_devices(self) -> None:
-        from hilswarm.agents.devices import Battery, HBridgeMotor  # noqa: PLC0415
-
         self.drive = self.add_device(HBridgeMotor, "drive", motors=("left", "right"))
         self.battery = self.add_device(Battery, "battery", multiplier=3.0, low_v=6.5)
 

@@ -12,6 +12,7 @@ from collections.abc import Iterator, Mapping
 import pytest
 from agent_rig import DT, Rig, cart_config, cart_hardware
 from hilswarm.agents import bus
+from hilswarm.agents.agent import AgentConfig, AgentHardware
 from hilswarm.agents.errors import SimulatorError
 from hilswarm.agents.link.serial_board import SerialBoard
 from hilswarm.agents.link.sim_board import SimBoard
@@ -28,7 +29,7 @@ PWM_PINS = (5, 6)
 
 
 def simavr_board(**options: object) -> SimavrBoard:
-    """The real firmware in the simulator, paced (real UART timing), battery at 7.5 V."""
+    """The real firmware in the simulator, paced (real UART timing)."""
     try:
         board = SimavrBoard("uno", paced=True, **options)
     except SimulatorError as exc:
@@ -53,7 +54,7 @@ def rigs() -> Iterator[list[Rig]]:
 
 
 def start_on_simavr(rigs: list[Rig], board: SimavrBoard) -> Rig:
-    def hardware(config):  # noqa: ANN001, ANN202 - a hardware factory
+    def hardware(config: AgentConfig) -> AgentHardware:
         board.open()
         board.set_analog_input(14, 2.5)  # 7.5 V through the cart's 1:3 divider
         return cart_hardware(board)(config)
@@ -63,6 +64,7 @@ def start_on_simavr(rigs: list[Rig], board: SimavrBoard) -> Rig:
     return rig
 
 
+@pytest.mark.usefixtures("firmware_built")
 def test_estop_reaches_the_pins_while_an_exchange_is_blocked_on_a_stalled_board(
     rigs: list[Rig],
 ) -> None:
@@ -91,6 +93,7 @@ def test_estop_reaches_the_pins_while_an_exchange_is_blocked_on_a_stalled_board(
     assert rig.close() == 0
 
 
+@pytest.mark.usefixtures("firmware_built")
 def test_a_stalled_board_degrades_the_agent_which_reconnects_and_rejoins(
     rigs: list[Rig],
 ) -> None:
@@ -118,6 +121,7 @@ def test_a_stalled_board_degrades_the_agent_which_reconnects_and_rejoins(
     assert rig.statuses[-1]["link_faults"] == 1, rig.statuses[-1]
 
 
+@pytest.mark.usefixtures("firmware_built")
 def test_a_killed_simulator_is_restarted_and_the_agent_rejoins(rigs: list[Rig]) -> None:
     board = simavr_board(timeout_s=0.1, retries=2, reconnect_timeout_s=2.0)
     rig = start_on_simavr(rigs, board)

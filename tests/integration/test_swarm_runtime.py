@@ -312,7 +312,9 @@ def test_recorder_killed_run_goes_on_and_recording_is_recoverable(
     recording = read_recording(recovered)
     assert recording["/experiment"]
     ks = [m["k"] for m in recording["/a/y"]]
-    assert ks == list(range(len(ks)))  # every complete chunk, in order, nothing invented
+    # Every complete chunk, in order, nothing invented (realtime: an agent that fell behind
+    # under load runs the newest tick and skips the ones it missed).
+    assert ks == sorted(set(ks)) and ks[0] == 0 and ks[-1] <= 199, ks
     with recovered.open("rb") as f:
         assert make_reader(f).get_summary() is not None
 
