@@ -27,6 +27,7 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
+from hilswarm.orchestrator.gateway_launcher import GatewayLauncher, GatewayProcessError
 from hilswarm.orchestrator.launcher import AgentLauncher, AgentProcessError, agent_config_for
 from hilswarm.orchestrator.manager import (
     DEFAULT_ANSWER_TIMEOUT_S,
@@ -34,6 +35,7 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
+from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay
@@ -83,10 +85,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="lockstep: an agent silent this long on one tick is lost [s]",
     )
     parser.add_argument(
+        "--remote-gateway",
+        action="store_true",
+        help="do not start the XBee gateway here: it joins with `hilswarm gateway`",
+    )
+    parser.add_argument(
         "--no-check",
         action="store_true",
         help="skip the vehicle/controller checks (e.g. remote agents' classes not installed)",
     )
+
+
+def _gateway_launcher(
+    experiment: Experiment, endpoints: list[str], args: argparse.Namespace
+) -> GatewayLauncher | None:
+    """The gateway process of ``experiment`` when an agent links through XBee (and it runs
+    here)."""
+    if args.remote_gateway:
+        return None
+    from hilswarm.agents.xbee.gateway_process import plan_for  # noqa: PLC0415 - xbee runs only
+
+    plan = plan_for(experiment)
+    if plan is None:
+        return None
+    return GatewayLauncher(plan, endpoints, verbose=max(0, args.verbose - 1))
 
 
 def default_output(experiment: Experiment, now: datetime.datetime) -> Path:
@@ -122,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
         describe_process=launcher.describe,
     )
     interrupted = False
+    gateway = _gateway_launcher(experiment, endpoints, args)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         nonlocal interrupted
@@ -131,8 +154,14 @@ def run(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     summary: RunSummary | None = None
     error = ""
+    mocap = MocapRunner(experiment, endpoints) if experiment.mocap is not None else None
     try:
         manager.open()
+        if gateway is not None:
+            display.log(f"XBee gateway: {gateway.start()}")
+        if mocap is not None:
+            mocap.start()
+            mocap.wait_ready()
         launcher.start_all(
             [
                 agent_config_for(experiment, n)
@@ -147,11 +176,21 @@ def run(args: argparse.Namespace) -> int:
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
         summary = manager.run()
-    except (ManagerError, AgentProcessError, RecordingError) as exc:
+    except (
+        ManagerError,
+        AgentProcessError,
+        RecordingError,
+        GatewayProcessError,
+        MocapError,
+    ) as exc:
         error = str(exc)
     finally:
         display.finish()
         launcher.stop()
+        if gateway is not None:
+            gateway.stop()
+        if mocap is not None:
+            mocap.stop()
         manager.close()
         if recorder.close() != 0 and not error:
             error = f"the recording {out} is incomplete (see the recorder's log above)"

@@ -35,10 +35,10 @@ def cart_config(*, link: str = "socket://test", name: str = "cart") -> AgentConf
     )
 
 
-def cart_hardware(board: Any, *, watchdog_s: float = 0.0) -> Callable[[AgentConfig], AgentHardware]:
+def cart_hardware(board: Any, *, watchdog_s: float = 0.0) -> Callable[..., AgentHardware]:
     """A hardware factory: the toy cart on ``board`` (opened and configured by the cart)."""
 
-    def build(config: AgentConfig) -> AgentHardware:
+    def build(config: AgentConfig, **_bus: Any) -> AgentHardware:
         vehicle = ToyCart(name=config.name, dt=config.dt)
         vehicle.connect(board, watchdog_s=watchdog_s)
         model = ControlModel(ToyDrive(), dt=config.dt, n_inputs=2, n_outputs=1)
@@ -50,7 +50,7 @@ def cart_hardware(board: Any, *, watchdog_s: float = 0.0) -> Callable[[AgentConf
 class Rig:
     """The router, the stand-in manager and the agent (see the module docstring)."""
 
-    def __init__(self, config: AgentConfig, hardware: Callable[[AgentConfig], AgentHardware]):
+    def __init__(self, config: AgentConfig, hardware: Callable[..., AgentHardware]) -> None:
         self.config = config
         self.keys = bus.BusKeys(config.experiment)
         endpoint = bus.loopback_endpoint(free_port())

@@ -54,10 +54,10 @@ def rigs() -> Iterator[list[Rig]]:
 
 
 def start_on_simavr(rigs: list[Rig], board: SimavrBoard) -> Rig:
-    def hardware(config: AgentConfig) -> AgentHardware:
+    def hardware(config: AgentConfig, **bus_options: object) -> AgentHardware:
         board.open()
         board.set_analog_input(14, 2.5)  # 7.5 V through the cart's 1:3 divider
-        return cart_hardware(board)(config)
+        return cart_hardware(board)(config, **bus_options)
 
     rig = Rig(cart_config(link="simavr://uno"), hardware)
     rigs.append(rig)
