@@ -28,6 +28,7 @@ import queue
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from hilswarm.agents import bus
@@ -60,9 +61,10 @@ def prepared(case_name: str) -> tuple[Agent, _Sink]:
 def messages(agent: Agent, k0: int, n: int) -> list[tuple[list[tuple[str, bytes]], bytes]]:
     """Per tick: the neighbours' y_{k-1} (they arrive first) and the tick message."""
     neighbours = agent.config.neighbours
+    values = [0.1 * (i + 1) for i in range(int(agent.hardware.vehicle.n_outputs))]
     return [
         (
-            [(name, bus.encode_vector(k - 1, (k - 1) * DT, [0.1, 0.2, 0.3])) for name in neighbours]
+            [(name, bus.encode_vector(k - 1, (k - 1) * DT, values)) for name in neighbours]
             if k > 0
             else [],
             bus.encode_tick(bus.TickMessage(k, k * DT)),
@@ -71,36 +73,51 @@ def messages(agent: Agent, k0: int, n: int) -> list[tuple[list[tuple[str, bytes]
     ]
 
 
-def run_callback(agent: Agent, sink: _Sink, k0: int, n: int) -> tuple[float, float]:
-    """``n`` ticks run on the calling thread; returns (wall s, CPU s) per tick."""
-    inputs = messages(agent, k0, n)
-    engine, lock, get = agent.engine, agent._engine_lock, sink.done.get
-    wall, cpu = time.perf_counter(), time.process_time()
-    for outputs, payload in inputs:
-        for name, y in outputs:
-            k, _t, values = bus.decode_vector(y)
-            with lock:
-                engine.on_neighbour(name, k, values)
-        tick = bus.decode_tick(payload)
-        with lock:
-            engine.on_tick(tick.k, tick.t, tick.missing, tick.realtime, 0.0)
-            ready = engine.take(gather=True)
-        agent._run_tick(ready)
-        get()
-    return (time.perf_counter() - wall) / n, (time.process_time() - cpu) / n
-
-
-def run_worker(agent: Agent, sink: _Sink, k0: int, n: int) -> tuple[float, float]:
-    """``n`` ticks handed to the agent's worker thread; returns (wall s, CPU s) per tick."""
-    inputs = messages(agent, k0, n)
-    receive, neighbour, get = agent.receive_tick, agent.receive_neighbour, sink.done.get
+def timed(
+    inputs: list[tuple[list[tuple[str, bytes]], bytes]],
+    neighbour: Callable[[str, bytes], None],
+    tick: Callable[[bytes], None],
+    done: Callable[[], bytes],
+) -> tuple[float, float]:
+    """Deliver ``inputs`` tick by tick, waiting for each y; returns (wall s, CPU s) per tick."""
     wall, cpu = time.perf_counter(), time.process_time()
     for outputs, payload in inputs:
         for name, y in outputs:
             neighbour(name, y)
-        receive(payload, arrived=0.0)
-        get()
+        tick(payload)
+        done()
+    n = len(inputs)
     return (time.perf_counter() - wall) / n, (time.process_time() - cpu) / n
+
+
+def run_callback(agent: Agent, sink: _Sink, k0: int, n: int) -> tuple[float, float]:
+    """``n`` ticks run on the calling thread (the old path: the tick in the callback)."""
+    engine, lock = agent.engine, agent._engine_lock
+
+    def neighbour(name: str, y: bytes) -> None:
+        k, _t, values = bus.decode_vector(y)
+        with lock:
+            engine.on_neighbour(name, k, values)
+
+    def tick(payload: bytes) -> None:
+        message = bus.decode_tick(payload)
+        with lock:
+            engine.on_tick(message.k, message.t, message.missing, message.realtime, 0.0)
+            ready = engine.take(gather=True)
+        agent._run_tick(ready)
+
+    return timed(messages(agent, k0, n), neighbour, tick, sink.done.get)
+
+
+def run_worker(agent: Agent, sink: _Sink, k0: int, n: int) -> tuple[float, float]:
+    """``n`` ticks handed to the agent's worker thread (the new path)."""
+    receive = agent.receive_tick
+    return timed(
+        messages(agent, k0, n),
+        agent.receive_neighbour,
+        lambda payload: receive(payload, arrived=0.0),
+        sink.done.get,
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
