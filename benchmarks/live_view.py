@@ -138,7 +138,10 @@ def main() -> None:
         batches, _ = build_frames(n, ticks)
         with tempfile.TemporaryDirectory() as tmp:
             results = {
-                mode: best_of(repeats, lambda mode=mode: measure(n, batches, Path(tmp), mode))
+                mode: best_of(
+                    repeats,
+                    lambda mode=mode, n=n, batches=batches: measure(n, batches, Path(tmp), mode),
+                )
                 for mode in modes
             }
         base_cpu, base_count, _ = results["none"]

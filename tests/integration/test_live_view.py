@@ -99,3 +99,11 @@ def test_a_client_sees_channels_and_messages_of_a_running_experiment(
     tick = json.loads(received["/orchestrator/ticks"][-1])
     assert "completion_s" in tick and "leader" in tick["agents"]
     assert run.process.poll() is None  # all this while the run goes
+    # every topic the shipped layout shows is served
+    layout = json.loads((REPO / "docs" / "foxglove-layout.json").read_text())
+    panels = layout["configById"].values()
+    paths = [p["value"] for panel in panels for p in panel.get("paths", [])]
+    topics = {path.split(".")[0] for path in paths} | {
+        topic for panel in panels for topic in panel.get("topics", {})
+    }
+    assert topics <= set(channels), topics - set(channels)
