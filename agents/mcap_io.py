@@ -637,8 +637,11 @@ class McapJsonWriter:
             raise RecordingError(f"MCAP writer for {self.path} is closed")
 
     def _register(self, topic: str, schema: dict[str, Any], fields: tuple[str, ...] | None) -> None:
+        title = str(schema.get("title", ""))
+        # A Foxglove well-known schema keeps its name (foxglove.PoseInFrame): panels key on it.
+        name = title if title.startswith("foxglove.") else topic
         schema_id = self._writer.register_schema(
-            name=topic, encoding="jsonschema", data=json.dumps(schema).encode()
+            name=name, encoding="jsonschema", data=json.dumps(schema).encode()
         )
         channel_id = self._writer.register_channel(
             topic=topic, message_encoding="json", schema_id=schema_id

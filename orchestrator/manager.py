@@ -303,7 +303,9 @@ class InstanceManager:
                 self._frames.append(status_frame(i, self._wall_ns(), payload))
             self.agent_states[name] = state
         if state == "safe":
-            self._events.put((_SAFE, name, str(message.get("detail", ""))))
+            agent_k = message.get("k")
+            agent_k = agent_k if isinstance(agent_k, int) else -1
+            self._events.put((_SAFE, name, str(message.get("detail", "")), agent_k))
 
     def _on_vector(self, sample: zenoh.Sample) -> None:
         """A vector on another agent key (telemetry): recorded as it came."""
@@ -621,7 +623,7 @@ class InstanceManager:
         elif kind == _STOP:
             self._stop_reason = str(item[1])
         elif kind == _SAFE:
-            self._on_agent_safe(item[1], item[2], k)
+            self._on_agent_safe(item[1], item[2], k, first_tick=item[3] == 0)
 
     def _wait_until(self, when: float) -> None:
         """Block until ``when`` on the manager clock, still handling stop requests."""
@@ -665,8 +667,17 @@ class InstanceManager:
             self._record_event(ORCHESTRATOR, "running", k=k, detail=reason)
             self._publish_state("running", reason)
 
-    def _on_agent_safe(self, name: str, detail: str, k: int) -> None:
-        """An agent reported state ``safe`` while ticking: apply ``on_agent_safe``."""
+    def _on_agent_safe(self, name: str, detail: str, k: int, *, first_tick: bool = False) -> None:
+        """An agent reported state ``safe`` while ticking: apply ``on_agent_safe``.
+
+        An agent safe from its first tick (no pose, a fault at start) fails the run whatever
+        the policy: it never did what the experiment asks.
+        """
+        if first_tick and not self._stop_reason and not self.summary.failed:
+            self.summary.failed = True
+            logger.warning("agent %s was safe from its first tick: %s", name, detail)
+            if self._display is not None:
+                self._display.log(f"agent {name} was safe from its first tick: {detail}")
         if self.experiment.on_agent_safe != "stop" or self._stop_reason:
             return
         self.summary.failed = True

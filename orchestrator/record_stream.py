@@ -40,6 +40,7 @@ import numpy as np
 from hilswarm.agents import bus
 from hilswarm.agents.errors import HilswarmError, RecordingError
 from hilswarm.agents.telemetry import telemetry_topic
+from hilswarm.orchestrator import pose_topic
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.recorder import TICKS_SCHEMA, TICKS_TOPIC, Recorder
 
@@ -500,6 +501,33 @@ class FrameRecorder:
                     for k, t, values in zip(k_list, t_list, value_rows, strict=True)
                 ]
             self.telemetry_rows += len(k_list)
+            if pose_topic.is_pose_channel(channel.channel, channel.fields):
+                self._poses(agent, zip(k_list, t_list, value_rows, strict=True), log_ns, rows)
+
+    def _poses(
+        self,
+        agent: str,
+        samples: Iterable[tuple[int, float, Sequence[float]]],
+        log_ns: int,
+        rows: list[tuple[str, int, float, Sequence[float], int]],
+    ) -> None:
+        """``/<agent>/pose`` (foxglove.PoseInFrame) from the agent's mocap rows."""
+        if rows:
+            self._flush_rows()
+        topic = pose_topic.pose_topic(agent)
+        for k, t, values in samples:
+            message = pose_topic.pose_message(k, t, values, log_ns)
+            if message is None:
+                continue
+            if self._wall:
+                message["wall_ns"] = log_ns
+            self.recorder.write_encoded(
+                topic,
+                json.dumps(message).encode(),
+                log_time_ns=log_ns,
+                schema=pose_topic.POSE_IN_FRAME_SCHEMA,
+                t=t,
+            )
 
     def _telemetry_fields(self, topic: str, fields: tuple[str, ...]) -> tuple[str, ...] | None:
         """Register ``topic`` with ``fields`` on first sight; ``None``: record it plain."""

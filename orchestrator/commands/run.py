@@ -36,6 +36,7 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
+from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay
@@ -164,10 +165,14 @@ def run(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     summary: RunSummary | None = None
     error = ""
+    mocap = MocapRunner(experiment, endpoints) if experiment.mocap is not None else None
     try:
         manager.open()
         if gateway is not None:
             display.log(f"XBee gateway: {gateway.start()}")
+        if mocap is not None:
+            mocap.start()
+            mocap.wait_ready()
         launcher.start_all(
             [
                 agent_config_for(experiment, n)
@@ -185,13 +190,21 @@ def run(args: argparse.Namespace) -> int:
             display.log("live view: open this in the Foxglove app (Open connection):")
             display.log(recorder.live_url)
         summary = manager.run()
-    except (ManagerError, AgentProcessError, RecordingError, GatewayProcessError) as exc:
+    except (
+        ManagerError,
+        AgentProcessError,
+        RecordingError,
+        GatewayProcessError,
+        MocapError,
+    ) as exc:
         error = str(exc)
     finally:
         display.finish()
         launcher.stop()
         if gateway is not None:
             gateway.stop()
+        if mocap is not None:
+            mocap.stop()
         manager.close()
         if recorder.close() != 0 and not error:
             error = f"the recording {out} is incomplete (see the recorder's log above)"
