@@ -47,6 +47,7 @@ from hilswarm.orchestrator.record_stream import (
     FrameRecorder,
     RecordSink,
     event_frame,
+    gateway_frame,
     status_frame,
     telemetry_frame,
     tick_frame,
@@ -219,6 +220,12 @@ class InstanceManager:
                 zenoh.handlers.Callback(self._on_telemetry, indirect=False),
             )
         )
+        entities.append(
+            session.declare_subscriber(
+                keys.gateway("*"),
+                zenoh.handlers.Callback(self._on_gateway, indirect=False),
+            )
+        )
         put = self._events.put
         entities.append(
             session.declare_subscriber(
@@ -332,6 +339,15 @@ class InstanceManager:
             logger.warning("telemetry batch not understood: %s", exc)
             return
         frame = telemetry_frame(i, self._wall_ns(), sample.payload.to_bytes())
+        with self._lock:
+            self._frames.append(frame)
+
+    def _on_gateway(self, sample: zenoh.Sample) -> None:
+        """The XBee gateway's status and per-tick figures (JSON): recorded as they came."""
+        if self._sink is None:
+            return
+        leaf = str(sample.key_expr).rsplit("/", 1)[-1]
+        frame = gateway_frame(self._wall_ns(), leaf, sample.payload.to_bytes())
         with self._lock:
             self._frames.append(frame)
 
