@@ -56,6 +56,8 @@ class AgentConfig:
             (:meth:`~hilswarm.agents.mocap.config.MocapSettings.to_dict`), or ``None``: the
             pose then comes from the link (a ``SimulatedMocap`` of a ``sim://`` plant).
         mocap_body: this agent's rigid body (``None``: its name).
+        mocap_neighbours: the graph neighbours' rigid bodies (agent name -> body), received
+            only when the controller ``uses_neighbour_poses``.
     """
 
     experiment: str
@@ -77,6 +79,7 @@ class AgentConfig:
     mocap_noise_std_rad: float = 0.0
     mocap: dict[str, Any] | None = None
     mocap_body: str | None = None
+    mocap_neighbours: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
@@ -153,6 +156,10 @@ def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> Age
     if getattr(vehicle, "needs_board", True):
         board = _open_board(config, vehicle, endpoints)
     controller = resolve_controller(config.controller)()
+    source = getattr(vehicle, "pose_source", None)
+    asks = getattr(controller, "uses_neighbour_poses", False) and config.mocap_neighbours
+    if asks and hasattr(source, "neighbour_poses"):
+        source.neighbours = dict(config.mocap_neighbours)
     model = ControlModel(
         controller,
         dt=config.dt,
@@ -160,6 +167,8 @@ def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> Age
         n_outputs=int(vehicle.n_outputs),
         params=config.params,
     )
+    if asks and hasattr(source, "neighbour_poses"):
+        model.neighbour_poses = source.neighbour_poses
     return AgentHardware(vehicle=vehicle, board=board, model=model)
 
 
