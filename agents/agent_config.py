@@ -18,7 +18,7 @@ from typing import Any
 from hilswarm.agents import bus
 from hilswarm.agents.control import ControlModel
 from hilswarm.agents.errors import HilswarmError
-from hilswarm.agents.link.url import board_for_url, link_scheme
+from hilswarm.agents.link.url import board_for_url, is_simulated, link_scheme
 from hilswarm.agents.registry import resolve_controller, resolve_vehicle
 
 #: Lockstep window when the orchestrator gives none [ticks] (the experiment file's default).
@@ -60,6 +60,8 @@ class AgentConfig:
             (:meth:`~hilswarm.agents.mocap.config.MocapSettings.to_dict`), or ``None``: the
             pose then comes from the link (a ``SimulatedMocap`` of a ``sim://`` plant).
         mocap_body: this agent's rigid body (``None``: its name).
+        mocap_neighbours: the graph neighbours' rigid bodies (agent name -> body), received
+            only when the controller ``uses_neighbour_poses``.
     """
 
     experiment: str
@@ -82,6 +84,7 @@ class AgentConfig:
     lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
     mocap: dict[str, Any] | None = None
     mocap_body: str | None = None
+    mocap_neighbours: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
@@ -163,6 +166,10 @@ def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> Age
     if getattr(vehicle, "needs_board", True):
         board = _open_board(config, vehicle, endpoints)
     controller = resolve_controller(config.controller)()
+    source = getattr(vehicle, "pose_source", None)
+    asks = getattr(controller, "uses_neighbour_poses", False) and config.mocap_neighbours
+    if asks and hasattr(source, "neighbour_poses"):
+        source.neighbours = dict(config.mocap_neighbours)
     model = ControlModel(
         controller,
         dt=config.dt,
@@ -170,6 +177,8 @@ def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> Age
         n_outputs=int(vehicle.n_outputs),
         params=config.params,
     )
+    if asks and hasattr(source, "neighbour_poses"):
+        model.neighbour_poses = source.neighbour_poses
     return AgentHardware(vehicle=vehicle, board=board, model=model)
 
 
@@ -207,7 +216,7 @@ def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()
             "experiment": config.experiment,
             "agent": config.name,
         }
-    if scheme in ("sim", "simavr") or (scheme == "xbee" and "sim=" in config.link):
+    if is_simulated(config.link):
         plant = vehicle.simulated_hardware(
             initial_state=list(config.initial_state) or None, dt=config.dt
         )
