@@ -318,7 +318,8 @@ class SimavrBoard(Board):
         paced: simulated time follows the wall clock.
         url: URL reported in messages.
         serial_options: passed to :class:`SerialBoard` (``board_id``, ``timeout_s``,
-            ``retries``, ``on_event``...).
+            ``retries``, ``on_event``...); ``reconnect_timeout_s`` bounds :meth:`reconnect`
+            instead (the serial link never re-opens the pty by itself).
     """
 
     def __init__(
@@ -341,7 +342,11 @@ class SimavrBoard(Board):
         self.dt = dt
         self.paced = paced
         self.harness = SimavrHarness(profile, paced=paced)  # raises if not built
-        self._serial_options = serial_options
+        # The serial link never re-opens the pty by itself: a lost pty means a dead harness,
+        # and its path may be handed to another process's pseudo-terminal at once. Its
+        # reconnect_timeout_s is how long reconnect() (the agent) may keep trying instead.
+        self._link_timeout_s = float(serial_options.pop("reconnect_timeout_s", 5.0))
+        self._serial_options = {**serial_options, "reconnect_timeout_s": 0.0}
         self.serial: SerialBoard | None = None
         self._modes: dict[int, PinMode] = {}
         self._last_t_us: int | None = None
@@ -453,9 +458,9 @@ class SimavrBoard(Board):
 
     @property
     def link_timeout_s(self) -> float:  # type: ignore[override]
-        """How long a lost link is re-tried [s] (the serial link's ``reconnect_timeout_s``)."""
-        serial = self.serial
-        return serial.reconnect_timeout_s if serial is not None else 0.0
+        """How long a lost link may be re-tried by :meth:`reconnect` [s] (the
+        ``reconnect_timeout_s`` option, default 5 s)."""
+        return self._link_timeout_s
 
     def request_estop(self) -> bool:
         """ESTOP on the serial link's own path (see :meth:`SerialBoard.request_estop`)."""
