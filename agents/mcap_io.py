@@ -32,7 +32,7 @@ import os
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any, Self
+from typing import IO, Any, Protocol, Self
 
 import foxglove
 import numpy as np
@@ -270,6 +270,16 @@ class _Topic:
         return (self.template % (int(k), t_text, text, *numbers)).encode()
 
 
+class Mirror(Protocol):
+    """Something that sees what a :class:`McapJsonWriter` writes (the live view)."""
+
+    def add_channel(self, channel_id: int, topic: str, schema: Mapping[str, Any]) -> None:
+        """A topic was registered (its JSON Schema); must not block."""
+
+    def log(self, channel_id: int, data: bytes, log_time_ns: int) -> None:
+        """A message was written (its JSON bytes); must not block."""
+
+
 class McapJsonWriter:
     """Writes one MCAP file of JSON messages, one channel (with its JSON Schema) per topic.
 
@@ -284,6 +294,8 @@ class McapJsonWriter:
             experiment time ``t`` is ``time_origin_ns + t``
             (:func:`~hilswarm.agents.record_schema.experiment_log_time_ns`) and the log time
             passed to a write method, the wall clock, goes into the message as ``wall_ns``.
+        mirror: also hands every channel and message to this (e.g. the live view); ``None``
+            costs nothing.
 
     The MCAP records are written by foxglove-sdk's writer (:func:`open_writer`); this class
     adds the topic contract and fast JSON text for vector messages.
@@ -298,9 +310,11 @@ class McapJsonWriter:
         chunk_size: int | None = DEFAULT_CHUNK_SIZE,
         compression: str = DEFAULT_COMPRESSION,
         time_origin_ns: int | None = None,
+        mirror: Mirror | None = None,
     ) -> None:
         self.path = Path(path)
         self._origin = time_origin_ns
+        self._mirror = mirror
         self._context, self._writer = open_writer(
             self.path, chunk_size=chunk_size, compression=compression
         )
@@ -349,7 +363,18 @@ class McapJsonWriter:
         )
         self._channels.append(channel)
         # the raw binding (what Channel.log calls for bytes), a few tenths of a µs cheaper
-        self._topics[topic] = _Topic(topic, channel.base.log, schema, fields)
+        log = channel.base.log
+        mirror = self._mirror
+        if mirror is not None:
+            channel_id = channel.id()
+            mirror.add_channel(channel_id, topic, schema)
+            file_log, mirror_log = log, mirror.log
+
+            def log(data: bytes, log_time_ns: int) -> None:
+                file_log(data, log_time_ns)
+                mirror_log(channel_id, data, log_time_ns)
+
+        self._topics[topic] = _Topic(topic, log, schema, fields)
 
     @staticmethod
     def _check_topic_name(topic: str) -> None:

@@ -54,11 +54,17 @@ def agent_config_for(
         initial_state=tuple(float(v) for v in spec.initial_state),
         calibration=str(spec.calibration) if spec.calibration else None,
         watchdog_s=experiment.watchdog_s,
+        lockstep_window=experiment.lockstep_window,
         seed=experiment.seed,
         mocap_noise_std_m=mocap_noise_std_m,
         mocap_noise_std_rad=mocap_noise_std_rad,
         mocap=experiment.mocap.to_dict() if experiment.mocap is not None else None,
         mocap_body=spec.body if experiment.mocap is not None else None,
+        mocap_neighbours=(
+            {n: experiment.agent(n).body for n in experiment.neighbours(name)}
+            if experiment.mocap is not None
+            else {}
+        ),
     )
 
 

@@ -83,6 +83,19 @@ _ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE = range(6)
 _K = struct.Struct("<q")
 
 
+def _counts(value: Any) -> int | dict[str, int] | None:
+    """An agent's counter as reported (a count, or counts by key); ``None``: not a counter."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if isinstance(value, dict):
+        return {
+            str(key): count
+            for key, count in value.items()
+            if isinstance(count, int) and not isinstance(count, bool)
+        }
+    return None
+
+
 class ManagerError(Exception):
     """Base of the manager's own errors (the orchestrator reports them and exits 1)."""
 
@@ -317,6 +330,9 @@ class InstanceManager:
         with self._lock:
             if self._sink is not None:
                 self._frames.append(status_frame(i, self._wall_ns(), payload))
+            if "degraded" in (state, self.agent_states.get(name)):
+                # A board link fault: the agent's ticks wait for its link, it is not hung.
+                self._tick.last_progress = self._clock()
             self.agent_states[name] = state
             self._note_status(name, state, message)
         if state == "safe":
@@ -336,15 +352,12 @@ class InstanceManager:
             summary.safe[name] = AgentEvent(k, detail)
         elif state == "degraded" and message.get("kind", "transition") == "transition":
             summary.degraded.setdefault(name, []).append(AgentEvent(k, detail))
-        counters = message.get("counters")
-        found = dict(counters) if isinstance(counters, dict) else {}
-        found.update({key: message[key] for key in COUNTER_NAMES if key in message})
         kept = {
-            key: int(value)
-            for key, value in found.items()
-            if isinstance(value, int | float) and not isinstance(value, bool)
+            key: counts
+            for key in COUNTER_NAMES
+            if key in message and (counts := _counts(message[key])) is not None
         }
-        if kept:
+        if kept:  # the agent's totals so far: the latest status holds them all
             summary.counters.setdefault(name, {}).update(kept)
 
     def _on_vector(self, sample: zenoh.Sample) -> None:
@@ -590,6 +603,9 @@ class InstanceManager:
         now = self._clock()
         waiting = tick.base <= tick.released and not self._paused  # an open tick to answer
         if waiting and not accounts and now - tick.last_progress > self.answer_timeout_s:
+            with self._lock:  # a degraded agent waits for its board link: not lost
+                if "degraded" in self.agent_states.values():
+                    return
             for j in tick.unanswered():
                 self._on_agent_gone(
                     self.names[j], tick.base, f"no answer within {self.answer_timeout_s} s"

@@ -29,8 +29,18 @@ BAD_INPUT = 2
 DEGRADED = 3
 INTERRUPTED = 130
 
-#: Agent status counters listed in the summary when non-zero (reported by the agents).
-COUNTER_NAMES = ("malformed", "dropped", "missed")
+#: Agent status counters listed in the summary when non-zero (reported by the agents, see
+#: docs/running.md): a count, or counts by key or reason.
+COUNTER_NAMES = ("malformed", "dropped", "skipped", "link_faults")
+#: How each counter reads in the summary.
+_COUNTER_WORDS = {
+    "malformed": "malformed messages",
+    "dropped": "dropped messages",
+    "skipped": "ticks skipped",
+    "link_faults": "link faults",
+}
+#: Reasons of dropped input that are normal under load (not a degradation by themselves).
+BENIGN_DROPS = frozenset({"stale"})
 
 
 @dataclass(frozen=True)
@@ -64,6 +74,28 @@ class Outcome:
         lines += [f"  degraded: {line}" for line in self.degradations]
         lines += [f"  note: {line}" for line in self.notes]
         return "\n".join(lines)
+
+
+def _counter_texts(counters: dict[str, int | dict[str, int]]) -> tuple[list[str], bool]:
+    """Texts of an agent's non-zero counters, and whether any of them degrades the run."""
+    parts: list[str] = []
+    serious = False
+    for key in COUNTER_NAMES:
+        value = counters.get(key)
+        if isinstance(value, dict):
+            total = sum(value.values())
+            shown = ", ".join(f"{reason}={count}" for reason, count in value.items() if count)
+            text = f"{total} {_COUNTER_WORDS[key]} ({shown})"
+            serious = serious or any(
+                count and reason not in BENIGN_DROPS for reason, count in value.items()
+            )
+        else:
+            total = int(value or 0)
+            text = f"{total} {_COUNTER_WORDS[key]}"
+            serious = serious or total > 0
+        if total:
+            parts.append(text)
+    return parts, serious
 
 
 def _ticks(first: int, last: int) -> str:
@@ -120,13 +152,9 @@ def decide(
             f"{events[-1].detail or 'link fault'}"
         )
     for name, counters in summary.counters.items():
-        shown = {key: counters[key] for key in COUNTER_NAMES if counters.get(key)}
-        if shown:
-            degradations.append(
-                f"agent {name}: "
-                + ", ".join(f"{count} {key}" for key, count in shown.items())
-                + (" messages" if "missed" not in shown else "")
-            )
+        parts, serious = _counter_texts(counters)
+        if parts:
+            (degradations if serious else notes).append(f"agent {name}: " + ", ".join(parts))
     late = {name: count for name, count in summary.late.items() if count}
     if summary.late_ticks:
         planned = max(summary.planned_ticks, 1)

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 from hilswarm.agents.errors import RecordingError
-from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION, McapJsonWriter
+from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION, McapJsonWriter, Mirror
 from hilswarm.orchestrator import calibration_report, record_content
 from hilswarm.orchestrator.experiment import Experiment
 from numpy.typing import ArrayLike
@@ -67,6 +67,16 @@ STATUS_SCHEMA = _object_schema(
         "agent": {"type": "string"},
         "state": {"type": "string", "description": "lifecycle state entered"},
         "detail": {"type": "string", "description": "reason or remark"},
+        "malformed": {
+            "type": "object",
+            "description": "messages the agent could not decode, by key (tick, y, control, set)",
+        },
+        "dropped": {
+            "type": "object",
+            "description": "well-formed messages the agent's tick engine rejected, by reason",
+        },
+        "skipped": {"type": "integer", "description": "ticks the agent missed in total"},
+        "link_faults": {"type": "integer", "description": "board link faults of the agent"},
     },
 )
 TICKS_SCHEMA = _object_schema(
@@ -115,6 +125,8 @@ class Recorder:
             goes into the message as ``wall_ns``. When ``None``, log times are the wall times
             given, and ``/experiment`` is written just before the first other message, with
             that message's log time (the recorder reads no clock itself).
+        mirror: also sees every channel and message written (the live view,
+            :class:`~hilswarm.orchestrator.live_view.LiveView`).
 
     Use as a context manager, or call :meth:`close` on every exit path: closing writes the
     MCAP summary and footer.
@@ -128,13 +140,18 @@ class Recorder:
         chunk_size: int | None = DEFAULT_CHUNK_SIZE,
         compression: str = DEFAULT_COMPRESSION,
         log_time_ns: int | None = None,
+        mirror: Mirror | None = None,
     ) -> None:
         self.path = Path(path)
         self.experiment = experiment
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._origin = log_time_ns
         self._writer = McapJsonWriter(
-            self.path, chunk_size=chunk_size, compression=compression, time_origin_ns=log_time_ns
+            self.path,
+            chunk_size=chunk_size,
+            compression=compression,
+            time_origin_ns=log_time_ns,
+            mirror=mirror,
         )
         self._lock = threading.Lock()
         self._experiment_written = False
@@ -318,6 +335,7 @@ class Recorder:
         t: float,
         log_time_ns: int,
         detail: str = "",
+        counters: Mapping[str, Any] | None = None,
     ) -> None:
         """Record a lifecycle state of ``agent`` on ``/<agent>/status``.
 
@@ -328,6 +346,8 @@ class Recorder:
             t: experiment time [s].
             log_time_ns: log time [ns, wall clock, Unix epoch].
             detail: free text, e.g. the reason of a safe-mode entry.
+            counters: the agent's input and fault counters (``malformed``, ``dropped``,
+                ``skipped``, ``link_faults``), as it sent them.
         """
         message = {
             "k": int(k),
@@ -336,6 +356,7 @@ class Recorder:
             "agent": agent,
             "state": str(state),
             "detail": str(detail),
+            **(counters or {}),
         }
         self._write_json(status_topic(agent), message, log_time_ns, STATUS_SCHEMA)
 

@@ -102,6 +102,8 @@ _F_GETPIPE_SZ = getattr(fcntl, "F_GETPIPE_SZ", 1032)
 _PIPE_MAX_SIZE = Path("/proc/sys/fs/pipe-max-size")
 _MIN_PIPE_SIZE = 64 * 1024
 _READY = b"ready"
+#: ``ready live <ws:// URL>``: ready, and serving the live view there.
+_LIVE = b"live"
 _ACK = b"ack"
 _ERROR = b"error"
 _NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
@@ -169,6 +171,9 @@ class RecorderProcess:
         on_failure: called once (from a thread of this object) with the reason when the
             recording cannot go on.
         max_restarts: restarts of a dead process before the recording is given up.
+        live_port: serve the run live on this localhost port (0: a free one; ``None``: no
+            live view), see :mod:`hilswarm.orchestrator.live_view`. A restarted process
+            serves on the port the first one chose.
 
     Call :meth:`wait_ready` before the first tick and :meth:`close` on every exit path.
     """
@@ -186,6 +191,7 @@ class RecorderProcess:
         staged: bool = False,
         on_failure: Callable[[str], None] | None = None,
         max_restarts: int = MAX_RESTARTS,
+        live_port: int | None = None,
     ) -> None:
         if queue_bytes < 1:
             raise RecordingError(f"queue_bytes must be positive [bytes], got {queue_bytes}")
@@ -197,6 +203,9 @@ class RecorderProcess:
         self._python = python
         self._on_failure = on_failure
         self._max_restarts = max_restarts
+        self._live_port = live_port
+        #: The live view's ``ws://`` URL once :meth:`wait_ready` returned ("" without one).
+        self.live_url = ""
         self._published = not staged
         self._staging = (
             self.path.with_name(f".{self.path.name}.starting-{os.getpid()}") if staged else None
@@ -265,6 +274,7 @@ class RecorderProcess:
                 "log_time_ns": self._log_time_ns,
                 "chunk_size": self._chunk_size,
                 "compression": self._compression,
+                "live_port": self._live_port,
             }
         )
         process = subprocess.Popen(
@@ -336,13 +346,23 @@ class RecorderProcess:
                     if word == _ACK:
                         self._acknowledge(int(rest))
                     elif word == _READY:
-                        self._ready.set()
+                        self._on_ready(rest)
                     elif word == _ERROR:
                         error = rest.decode(errors="replace")
                 stdout.close()
             code = process.wait()
             if not self._ended(process, code, error):
                 return
+
+    def _on_ready(self, rest: bytes) -> None:
+        """``ready`` or ``ready live <URL>``: keep the URL and its port (for a restart)."""
+        word, _, url = rest.strip().partition(b" ")
+        if word == _LIVE and url:
+            self.live_url = url.decode()
+            port = self.live_url.rsplit(":", 1)[-1].strip("/")
+            if port.isdigit():
+                self._live_port = int(port)
+        self._ready.set()
 
     def _acknowledge(self, seq: int) -> None:
         with self._changed:
@@ -692,16 +712,30 @@ def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], 
     experiment: Experiment = setup["experiment"]
     log_time_ns: int = setup["log_time_ns"]
     path = Path(setup["path"])
-    with Recorder(
-        path,
-        experiment,
-        chunk_size=setup["chunk_size"],
-        compression=setup.get("compression", DEFAULT_COMPRESSION),
-        log_time_ns=log_time_ns,
-    ) as recorder:
+    live = None
+    if setup.get("live_port") is not None:
+        from hilswarm.orchestrator.live_view import LiveView  # noqa: PLC0415 - only with --live
+
+        live = LiveView(int(setup["live_port"]), name=f"hilswarm {experiment.name}")
+    with contextlib.ExitStack() as stack:
+        if live is not None:
+            stack.callback(live.close)
+        recorder = stack.enter_context(
+            Recorder(
+                path,
+                experiment,
+                chunk_size=setup["chunk_size"],
+                compression=setup.get("compression", DEFAULT_COMPRESSION),
+                log_time_ns=log_time_ns,
+                mirror=live,
+            )
+        )
         record_vehicles(recorder, experiment, log_time_ns=log_time_ns)
         recorder.flush()
-        _say(out, _READY)
+        if live is None:
+            _say(out, _READY)
+        else:
+            _say(out, _READY, _LIVE, live.url.encode())
         frames = FrameRecorder(recorder, experiment)
         reader = FrameReader()
         started = time.perf_counter()

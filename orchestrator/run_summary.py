@@ -62,8 +62,8 @@ class RunSummary:
         lost_at: per lost agent, the tick of the loss and its reason.
         safe: per agent, its first entry into safe mode (tick and reason).
         degraded: per agent, its entries into the ``degraded`` state (link fault).
-        counters: per agent, the latest counters its status reports (e.g. ``malformed``,
-            ``dropped``, ``missed`` messages/ticks), when it reports any.
+        counters: per agent, the latest counters its status reports (``malformed`` and
+            ``dropped`` messages by key or reason, ``skipped`` ticks, ``link_faults``).
         late: late answers per agent (realtime).
         late_ticks: ticks not complete by the next tick's deadline (realtime).
         max_late_fraction: late ticks above this fraction of the planned ticks degrade the
@@ -86,7 +86,7 @@ class RunSummary:
     lost_at: dict[str, AgentEvent] = field(default_factory=dict)
     safe: dict[str, AgentEvent] = field(default_factory=dict)
     degraded: dict[str, list[AgentEvent]] = field(default_factory=dict)
-    counters: dict[str, dict[str, int]] = field(default_factory=dict)
+    counters: dict[str, dict[str, int | dict[str, int]]] = field(default_factory=dict)
     late: dict[str, int] = field(default_factory=dict)
     late_ticks: int = 0
     max_late_fraction: float = 0.01

@@ -14,6 +14,9 @@ vehicle senses, decides:
   ``hold_frames`` frames; no message for longer than ``hold_s`` (the mocap process or its
   server is gone); the mocap process reporting its server lost.
 
+A controller that ``uses_neighbour_poses`` also gets its graph neighbours' bodies
+(:meth:`MocapPoseSource.neighbour_poses`; each an explicit key, nothing else is received).
+
 With ``system = "sim"`` it also publishes its simulated plant's true world pose on
 ``mocap_truth/<body>`` at each sense (and once at start) — what the simulated cameras see.
 
@@ -104,6 +107,9 @@ class MocapPoseSource:
         self._on_lost = on_lost
         self._clock = clock
         self._latest: tuple[message.BodyPose, float] | None = None  # (message, arrival [s])
+        #: Graph neighbours whose poses the controller asks for: agent name -> body.
+        self.neighbours: dict[str, str] = {}
+        self._neighbour_latest: dict[str, tuple[message.BodyPose, float]] = {}
         self._status: dict[str, Any] = {}
         self._first = threading.Event()
         self._truth_pub: zenoh.Publisher | None = None
@@ -130,6 +136,16 @@ class MocapPoseSource:
                 keys.mocap_status, zenoh.handlers.Callback(self._on_status, indirect=False)
             ),
         ]
+        for agent, body in self.neighbours.items():
+            entities.append(
+                session.declare_subscriber(
+                    keys.mocap(body),
+                    zenoh.handlers.Callback(
+                        lambda sample, agent=agent: self._on_neighbour(agent, sample),
+                        indirect=False,
+                    ),
+                )
+            )
         if self._truth is not None:
             self._truth_pub = session.declare_publisher(keys.mocap_truth(self.body), **bus.DATA_QOS)
             entities.append(self._truth_pub)
@@ -145,6 +161,15 @@ class MocapPoseSource:
         self._latest = (decoded, self._clock())
         if not decoded.occluded:
             self._first.set()
+
+    def _on_neighbour(self, agent: str, sample: zenoh.Sample) -> None:
+        try:
+            self._neighbour_latest[agent] = (
+                message.decode(sample.payload.to_bytes()),
+                self._clock(),
+            )
+        except bus.BusMessageError as exc:
+            logger.warning("mocap body of neighbour %s: %s", agent, exc)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         try:
@@ -189,18 +214,30 @@ class MocapPoseSource:
 
     def lost(self) -> str | None:
         """Why tracking is lost now, or ``None`` while the pose may be used."""
+        return self._why_lost(self.body, self._latest)
+
+    def _why_lost(self, body: str, latest: tuple[message.BodyPose, float] | None) -> str | None:
         if self._status.get("state") == "lost":
             return f"lost tracking: mocap server lost ({self._status.get('detail', '')})"
-        latest = self._latest
         if latest is None:
-            return f"lost tracking: no pose of body {self.body!r} received"
+            return f"lost tracking: no pose of body {body!r} received"
         pose, arrived = latest
         if pose.occluded > self.hold_frames:
-            return f"lost tracking: body {self.body!r} not seen for {pose.occluded} frames"
+            return f"lost tracking: body {body!r} not seen for {pose.occluded} frames"
         age = self._clock() - arrived
         if age > self.hold_s:
             return f"lost tracking: no mocap frame for {age:.3f} s (mocap process silent)"
         return None
+
+    def neighbour_poses(self) -> dict[str, np.ndarray | None]:
+        """The neighbours' newest poses (world frame) by agent name; ``None``: lost or unseen
+        (the same rules as the agent's own body, no stale pose)."""
+        poses: dict[str, np.ndarray | None] = {}
+        for agent, body in self.neighbours.items():
+            latest = self._neighbour_latest.get(agent)
+            lost = self._why_lost(body, latest)
+            poses[agent] = None if lost is not None or latest is None else latest[0].pose.copy()
+        return poses
 
     def pose(self) -> np.ndarray:
         """The body's pose ``[x, y, z (m), roll, pitch, yaw (rad)]`` (world frame), or NaN."""

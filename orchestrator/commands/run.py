@@ -5,6 +5,7 @@ Example::
     hilswarm run graphs/lead_follow.toml
     hilswarm run graphs/lead_follow.toml --link leader=/dev/ttyUSB0 --mode realtime
     hilswarm run graphs/consensus_ring.toml --out out/ring.mcap --duration 5
+    hilswarm run graphs/lead_follow.toml --mode realtime --live      # watch it in Foxglove
 
 Ctrl-C (or ``hilswarm stop EXP`` from another terminal) brings every agent to safe mode, stops
 it, and closes the recording properly. The exit status tells the truth about the run (see
@@ -120,6 +121,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="lockstep: an agent silent this long on one tick is lost [s]",
     )
     parser.add_argument(
+        "--live",
+        nargs="?",
+        type=int,
+        const=0,
+        default=None,
+        metavar="PORT",
+        help="serve the run live to the Foxglove app (WebSocket on localhost; PORT default: "
+        "a free one, printed as a ws:// URL)",
+    )
+    parser.add_argument(
         "--remote-gateway",
         action="store_true",
         help="do not start the XBee gateway here: it joins with `hilswarm gateway`",
@@ -195,7 +206,12 @@ def run(args: argparse.Namespace) -> int:
 
     out.parent.mkdir(parents=True, exist_ok=True)
     recorder = RecorderProcess(
-        out, experiment, log_time_ns=time.time_ns(), staged=True, on_failure=recording_failed
+        out,
+        experiment,
+        log_time_ns=time.time_ns(),
+        staged=True,
+        on_failure=recording_failed,
+        live_port=args.live,
     )
     launcher = AgentLauncher(
         endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
@@ -242,6 +258,9 @@ def run(args: argparse.Namespace) -> int:
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
         recorder.publish(replace=args.force)  # the run begins: the recording takes its name
+        if recorder.live_url:
+            display.log("live view: open this in the Foxglove app (Open connection):")
+            display.log(recorder.live_url)
         summary = manager.run()
     except (
         ManagerError,

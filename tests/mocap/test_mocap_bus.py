@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import zenoh
 from hilswarm.agents import bus
+from hilswarm.agents.control import Controller, ControlModel, TickInput
 from hilswarm.agents.mocap import message
 from hilswarm.agents.mocap.clients import QualisysClient
 from hilswarm.agents.mocap.config import MocapSettings
@@ -55,7 +56,14 @@ def router() -> Iterator[list[str]]:
 class Rig:
     """Simulator + mocap process (thread) + one agent-side pose source, on one bus."""
 
-    def __init__(self, endpoints: list[str], sim: SimSettings, *, hold_frames: int) -> None:
+    def __init__(
+        self,
+        endpoints: list[str],
+        sim: SimSettings,
+        *,
+        hold_frames: int,
+        neighbours: dict[str, str] | None = None,
+    ) -> None:
         self.sim = QtmSimulator(sim)
         self.sim.start()
         settings = MocapSettings(system="sim", rate_hz=sim.rate_hz, hold_frames=hold_frames)
@@ -74,6 +82,7 @@ class Rig:
             sim.bodies[0], hold_frames=hold_frames, hold_s=settings.hold_s,
             start_timeout_s=10.0, on_lost=self.lost.append,
         )  # fmt: skip
+        self.source.neighbours = dict(neighbours or {})
         self.telemetry = Telemetry()
         self.source.add_telemetry(self.telemetry)
         self.entities = self.source.attach_bus(self.session, bus.BusKeys(EXPERIMENT))
@@ -159,5 +168,33 @@ def test_a_body_never_seen_is_named_with_the_visible_ones(router: list[str]) -> 
         wait_for(lambda: rig.source._status.get("visible") == ["f2"], "the status")
         with pytest.raises(LookupError, match=r"'ghost' is not visible .* sees: f2"):
             rig.source.wait_first()
+    finally:
+        rig.close()
+
+
+class PoseReader(Controller):
+    """Returns the x of its neighbour ``n2``'s mocap pose as u (NaN-free: 0 while lost)."""
+
+    uses_neighbour_poses = True
+
+    def step(self, tick: TickInput, x_hat: np.ndarray, params: object) -> tuple:
+        pose = tick.neighbour_poses.get("n2")
+        return np.array([0.0 if pose is None else pose[0]]), x_hat
+
+
+def test_a_controller_that_asks_gets_its_neighbours_poses(router: list[str]) -> None:
+    sim = SimSettings(bodies=("f1", "f2", "f3"), rate_hz=100.0)
+    rig = Rig(router, sim, hold_frames=5, neighbours={"n2": "f2"})
+    try:
+        rig.sim.set_truth("f1", np.zeros(6))
+        rig.sim.set_truth("f2", np.array([0.75, 0.5, 0.0, 0.0, 0.0, 0.25]))
+        rig.sim.set_truth("f3", np.ones(6))
+        rig.source.wait_first()
+        model = ControlModel(PoseReader(), dt=0.05, n_inputs=1, n_outputs=1)
+        model.neighbour_poses = rig.source.neighbour_poses
+        wait_for(lambda: rig.source.neighbour_poses()["n2"] is not None, "the neighbour's pose")
+        assert set(rig.source.neighbour_poses()) == {"n2"}  # only the neighbour it was given
+        u = model.step(np.zeros(1), np.zeros(1))
+        assert u[0] == pytest.approx(0.75, abs=1e-4)
     finally:
         rig.close()

@@ -27,7 +27,9 @@ def test_every_degradation_is_listed_with_counts_and_ticks() -> None:
             lost=["b"],
             lost_at={"b": AgentEvent(120, "liveliness token lost")},
             degraded={"c": [AgentEvent(5, "link stalled"), AgentEvent(9, "link stalled")]},
-            counters={"c": {"malformed": 3, "dropped": 2}},
+            counters={
+                "c": {"malformed": {"tick": 2, "y": 1}, "dropped": {"y_ahead": 2}, "skipped": 4}
+            },
             late={"a": 5, "b": 7},
             late_ticks=12,
             recording=RecordingReport(
@@ -41,7 +43,10 @@ def test_every_degradation_is_listed_with_counts_and_ticks() -> None:
     assert "agent a safe from tick 37: battery low" in text
     assert "agent b lost at tick 120" in text and "280 ticks missed (ticks 120..399)" in text
     assert "agent c degraded 2 times (ticks 5, 9)" in text
-    assert "agent c: 3 malformed, 2 dropped messages" in text
+    assert (
+        "agent c: 3 malformed messages (tick=2, y=1), 2 dropped messages (y_ahead=2), "
+        "4 ticks skipped" in text
+    )
     assert "12 of 400 ticks late (3.0 %" in text or "12 of 400 ticks late (3.0%" in text
     assert "a=5, b=7" in text and "continued in run.1.mcap" in text
     assert text.startswith("outcome: degraded (exit status 3)")
@@ -93,3 +98,8 @@ def test_on_recording_failure_is_read_from_the_experiment() -> None:
 
     assert on_recording_failure(SimpleNamespace()) == "stop"  # the default
     assert on_recording_failure(SimpleNamespace(on_recording_failure="continue")) == "continue"
+
+
+def test_stale_drops_alone_are_a_note() -> None:
+    result = decide(summary(counters={"a": {"dropped": {"stale": 7}}}))
+    assert result.code == CLEAN and "agent a: 7 dropped messages (stale=7)" in result.notes
