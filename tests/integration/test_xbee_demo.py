@@ -75,7 +75,7 @@ def test_robot_out_of_range_goes_safe_and_the_others_go_on(
     run = RunProcess(tmp_path, _variant(tmp_path), port=free_port())
     runs.append(run)
     _put_when_running(run, [(20, {"out_of_range": "f3"})])
-    assert run.wait(300) == 0, run.output()
+    assert run.wait(300) == 3, run.output()  # the others go on; degraded: f3 went safe
     recording = read_recording(run.out)
     f3 = [m for m in recording["/f3/status"] if m["state"] == "safe"]
     assert f3 and "BoardTimeoutError" in f3[0]["detail"], recording["/f3/status"]
@@ -99,7 +99,7 @@ def test_coordinator_unplugged_every_xbee_agent_goes_safe_then_it_reconnects(
     run = RunProcess(tmp_path, _variant(tmp_path), port=free_port())
     runs.append(run)
     _put_when_running(run, [(20, {"unplug": True}), (30, {"replug": True})])
-    assert run.wait(300) == 0, run.output()
+    assert run.wait(300) == 3, run.output()  # it goes on, degraded (agents safe, ticks missed)
     recording = read_recording(run.out)
     for name in ("leader", "f1", "f2", "f3", "f4", "f5"):
         safe = [m for m in recording[f"/{name}/status"] if m["state"] == "safe"]
