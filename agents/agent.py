@@ -53,6 +53,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
@@ -65,6 +66,7 @@ from hilswarm.agents.agent_config import (  # also this module's interface
     AgentHardware,
     build_hardware,
 )
+from hilswarm.agents.credentials import Credentials
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.lifecycle import AgentLifecycle
 from hilswarm.agents.telemetry import TelemetryBatcher
@@ -127,6 +129,7 @@ class Agent:
     Args:
         config: what to build and where it sits in the graph.
         endpoints: Zenoh endpoints to connect to (the orchestrator's router or a zenohd).
+        security: the agent's credentials for the run's router (``None``: none).
         hardware_factory: builds vehicle/board/controller (tests may pass their own).
         clock: monotonic clock [s] used for tick timings.
         startup_timeout_s: bound on waiting for the bus and the manager.
@@ -137,13 +140,15 @@ class Agent:
         config: AgentConfig,
         endpoints: Sequence[str],
         *,
+        security: bus.SessionSecurity | None = None,
         hardware_factory: Callable[[AgentConfig], AgentHardware] = build_hardware,
         clock: Callable[[], float] = time.perf_counter,
         startup_timeout_s: float = DEFAULT_STARTUP_TIMEOUT_S,
     ) -> None:
         self.config = config
         self.endpoints = list(endpoints)
-        self.keys = bus.BusKeys(config.experiment)
+        self.keys = bus.BusKeys(config.experiment, config.run_id)
+        self._security = security
         self._hardware_factory = hardware_factory
         self._clock = clock
         self._startup_timeout_s = startup_timeout_s
@@ -278,7 +283,7 @@ class Agent:
         return event
 
     def _open_bus(self) -> zenoh.Session:
-        session = bus.open_session(bus.client_config(self.endpoints))
+        session = bus.open_session(bus.client_config(self.endpoints, security=self._security))
         self._session = session
         self._status_pub = session.declare_publisher(
             self.keys.status(self.config.name), **bus.DATA_QOS
@@ -791,9 +796,11 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def run_agent(config: AgentConfig, endpoints: Sequence[str]) -> int:
+def run_agent(
+    config: AgentConfig, endpoints: Sequence[str], security: bus.SessionSecurity | None = None
+) -> int:
     """Run one agent in this process until stopped; SIGINT/SIGTERM stop it cleanly."""
-    agent = Agent(config, endpoints)
+    agent = Agent(config, endpoints, security=security)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         agent.request_stop(f"signal {signal.Signals(signum).name}")
@@ -804,9 +811,13 @@ def run_agent(config: AgentConfig, endpoints: Sequence[str]) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m hilswarm.agents.agent --connect ENDPOINT --config JSON``."""
+    """``python -m hilswarm.agents.agent [--connect ENDPOINT] [--credentials FILE] --config JSON``.
+
+    The endpoints default to those of the credentials file.
+    """
     parser = argparse.ArgumentParser(prog="python -m hilswarm.agents.agent")
-    parser.add_argument("--connect", action="append", required=True, help="Zenoh endpoint")
+    parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint")
+    parser.add_argument("--credentials", type=Path, help="the agent's credentials file (0600)")
     parser.add_argument("--config", required=True, help="AgentConfig as JSON")
     parser.add_argument("-v", "--verbose", action="count", default=0)
     args = parser.parse_args(argv)
@@ -816,10 +827,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         config = AgentConfig.from_json(args.config)
+        credentials = Credentials.read(args.credentials) if args.credentials else None
     except HilswarmError as exc:
         logger.error("%s", exc)
         return 2
-    return run_agent(config, args.connect)
+    endpoints = args.connect or (list(credentials.endpoints) if credentials else [])
+    if not endpoints:
+        logger.error("no bus endpoint: give --connect or --credentials")
+        return 2
+    return run_agent(config, endpoints, credentials.security() if credentials else None)
 
 
 if __name__ == "__main__":

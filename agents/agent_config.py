@@ -51,6 +51,7 @@ class AgentConfig:
         seed: seed for simulated sensors (mocap noise), or ``None``.
         mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
         mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
+        run_id: the run's id (bus key prefix ``hilswarm/<exp>/<run_id>``; empty: none).
     """
 
     experiment: str
@@ -70,9 +71,12 @@ class AgentConfig:
     seed: int | None = None
     mocap_noise_std_m: float = 0.0
     mocap_noise_std_rad: float = 0.0
+    run_id: str = ""
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
+        if self.run_id:
+            bus.check_key_name(self.run_id, what="run id")
         bus.check_key_name(self.name, what="agent name")
         if self.name not in self.agent_names:
             raise AgentConfigError(

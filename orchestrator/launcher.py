@@ -1,10 +1,12 @@
 """Starts one OS process per agent and guarantees they are gone when the run ends.
 
-Each agent runs ``python -m hilswarm.agents.agent --connect ENDPOINT --config JSON`` in its own
-process group (a new session), so a Ctrl-C at the terminal reaches only the orchestrator, which
-then stops the agents in order (safe mode first). :meth:`AgentLauncher.stop` — called on every
-exit path, also from ``__exit__`` — waits for agents that were told to stop, then sends SIGTERM
-to every remaining process group and finally SIGKILL, each step with a timeout.
+Each agent runs ``python -m hilswarm.agents.agent --connect ENDPOINT --credentials FILE --config
+JSON`` (the credentials file, mode 0600, holds its password; the command line only its path) in
+its own process group (a new session), so a Ctrl-C at the terminal reaches only the
+orchestrator, which then stops the agents in order (safe mode first).
+:meth:`AgentLauncher.stop` — called on every exit path, also from ``__exit__`` — waits for agents
+that were told to stop, then sends SIGTERM to every remaining process group and finally
+SIGKILL, each step with a timeout.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ def agent_config_for(
     *,
     mocap_noise_std_m: float = 0.0,
     mocap_noise_std_rad: float = 0.0,
+    run_id: str = "",
 ) -> AgentConfig:
     """The :class:`AgentConfig` of agent ``name`` of ``experiment`` (links as overridden)."""
     spec = experiment.agent(name)
@@ -57,6 +60,7 @@ def agent_config_for(
         seed=experiment.seed,
         mocap_noise_std_m=mocap_noise_std_m,
         mocap_noise_std_rad=mocap_noise_std_rad,
+        run_id=run_id,
     )
 
 
@@ -70,6 +74,7 @@ class AgentLauncher:
         import_paths: folders put first on the agents' ``PYTHONPATH`` (the experiment file's
             folder, so user vehicles/controllers named ``"module:Class"`` beside it import).
         verbose: agent log verbosity (0 warnings, 1 info, 2 debug).
+        credentials: agent name -> its credentials file (``None``: the bus needs none).
     """
 
     def __init__(
@@ -80,8 +85,10 @@ class AgentLauncher:
         env: Mapping[str, str] | None = None,
         import_paths: Sequence[str | Path] = (),
         verbose: int = 0,
+        credentials: Mapping[str, Path] | None = None,
     ) -> None:
         self.endpoints = list(endpoints)
+        self.credentials = dict(credentials or {})
         self.python = python
         self.env = {**os.environ, **(env or {})}
         if import_paths:
@@ -96,6 +103,8 @@ class AgentLauncher:
         command = [self.python, "-m", "hilswarm.agents.agent"]
         for endpoint in self.endpoints:
             command += ["--connect", endpoint]
+        if config.name in self.credentials:
+            command += ["--credentials", str(self.credentials[config.name])]
         command += ["--config", config.to_json()]
         command += ["-v"] * self.verbose
         return command

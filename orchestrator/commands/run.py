@@ -6,6 +6,12 @@ Example::
     hilswarm run graphs/lead_follow.toml --link leader=/dev/ttyUSB0 --mode realtime
     hilswarm run graphs/consensus_ring.toml --out out/ring.mcap --duration 5
 
+Every run has a bus of its own: the embedded router binds a free loopback port (printed, and
+listed by ``hilswarm ps``), every key carries a fresh run id, and every process authenticates
+with credentials made for this run; the router's access control lets each one do only its job
+(docs/security.md). ``--listen tls/0.0.0.0:PORT`` adds a TLS endpoint for agents on other
+machines (``--remote NAME``, joined with ``hilswarm agent --credentials FILE``).
+
 Ctrl-C (or ``hilswarm stop EXP`` from another terminal) brings every agent to safe mode, stops
 it, and closes the recording properly. Exit status: 0 completed or stopped on request, 1 the
 run failed (an agent lost with ``on_agent_loss = "stop"``, start-up failure), 2 bad input,
@@ -16,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import secrets
 import signal
 import sys
 import time
@@ -24,6 +31,7 @@ from types import FrameType
 
 from hilswarm.agents import bus
 from hilswarm.agents.errors import RecordingError
+from hilswarm.orchestrator.bus_access import VIEWER, VIEWER_GRANTS, agent_user, run_grants
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
@@ -35,8 +43,10 @@ from hilswarm.orchestrator.manager import (
     ManagerError,
 )
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.run_registry import RunEntry, RunRecord
+from hilswarm.orchestrator.run_security import RunSecurity
 from hilswarm.orchestrator.run_summary import RunSummary
-from hilswarm.orchestrator.status_display import StatusDisplay
+from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
 
 HELP = "run an experiment file (one process per agent, recorded to MCAP)"
 
@@ -53,13 +63,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="join an existing Zenoh router (e.g. tcp/127.0.0.1:7447) instead of opening one",
+        help="join an existing Zenoh router (e.g. tcp/127.0.0.1:7447) instead of opening one "
+        "(no authentication: secure that router yourself)",
     )
     parser.add_argument(
         "--port",
         type=int,
-        default=bus.DEFAULT_PORT,
-        help=f"loopback port of the embedded bus (default {bus.DEFAULT_PORT})",
+        default=0,
+        help="loopback port of the embedded bus (default 0: a free port, printed)",
+    )
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="also listen here for agents on other machines, e.g. tls/0.0.0.0:7447 "
+        "(port 0: a free one; tls/ endpoints use a CA made for this run)",
+    )
+    parser.add_argument(
+        "--tls-name",
+        action="append",
+        default=[],
+        metavar="HOST",
+        help="another name or address other machines reach this one by (TLS certificate)",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="no authentication and no access control on the bus (debugging, benchmarks)",
     )
     parser.add_argument(
         "--remote",
@@ -106,19 +137,67 @@ def run(args: argparse.Namespace) -> int:
         print(f"hilswarm run: --remote names unknown agents: {', '.join(unknown)}", file=sys.stderr)
         return 2
     out = args.out or default_output(experiment, datetime.datetime.now())
-    endpoints = list(args.connect) or [bus.loopback_endpoint(args.port)]
+    run_id = secrets.token_hex(4)
+    secure = not (args.insecure or args.connect)
+    listen = [] if args.connect else [bus.loopback_endpoint(args.port), *args.listen]
+    record = RunRecord(
+        RunEntry(
+            name=experiment.name,
+            run_id=run_id,
+            endpoints=list(args.connect or listen),
+            pid=0,
+            mode=experiment.mode,
+            n_ticks=experiment.n_ticks,
+            agents=dict.fromkeys(experiment.agent_names, "starting"),
+            file=str(args.file),
+            out=str(out),
+            started=datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds"),
+            secure=secure,
+        )
+    )
+    try:
+        return _run(args, experiment, record, listen=listen, secure=secure)
+    finally:
+        record.remove()
+
+
+def _run(
+    args: argparse.Namespace,
+    experiment: Experiment,
+    record: RunRecord,
+    *,
+    listen: list[str],
+    secure: bool,
+) -> int:
+    run_id = record.entry.run_id
+    out = Path(record.entry.out)
+    security = None
+    if secure:
+        grants = run_grants(
+            {name: experiment.neighbours(name) for name in experiment.agent_names},
+            extra={VIEWER: VIEWER_GRANTS},
+        )
+        security = RunSecurity(
+            bus.BusKeys(experiment.name, run_id),
+            grants,
+            record.folder,
+            listen=listen,
+            tls_names=args.tls_name,
+        )
     display = StatusDisplay(sys.stdout)
     recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
     launcher = AgentLauncher(
-        endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
+        [], verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
     )
     manager = InstanceManager(
         experiment,
         recorder=recorder,
-        listen=[] if args.connect else endpoints,
+        listen=listen,
         connect=args.connect,
+        run_id=run_id,
+        security=security.router() if security else None,
         answer_timeout_s=args.answer_timeout,
-        display=display,
+        display=_RegistryDisplay(display, record),
         describe_process=launcher.describe,
     )
     interrupted = False
@@ -133,23 +212,39 @@ def run(args: argparse.Namespace) -> int:
     error = ""
     try:
         manager.open()
+        endpoints = manager.endpoints
+        launcher.endpoints = [e for e in endpoints if _is_loopback(e)] or endpoints
+        if security is not None:
+            launcher.credentials = _write_credentials(security, experiment, args.remote, endpoints)
+        record.entry.endpoints = endpoints
+        record.entry.state = "waiting"
+        record.write()
         launcher.start_all(
             [
-                agent_config_for(experiment, n)
+                agent_config_for(experiment, n, run_id=run_id)
                 for n in experiment.agent_names
                 if n not in args.remote
             ]
         )
         display.log(
             f"{experiment.name}: {len(experiment.agents)} agents, {experiment.mode}, "
-            f"{experiment.rate_hz:g} Hz, {experiment.duration_s:g} s; bus {', '.join(endpoints)}"
+            f"{experiment.rate_hz:g} Hz, {experiment.duration_s:g} s; run {run_id}; "
+            f"bus {', '.join(endpoints)}" + ("" if secure else " (no authentication)")
         )
+        for name in args.remote:
+            where = launcher.credentials.get(name)
+            display.log(
+                f"waiting for remote agent {name}"
+                + (f": hilswarm agent --credentials {where} ..." if where else "")
+            )
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
+        record.entry.state = "running"
         summary = manager.run()
-    except (ManagerError, AgentProcessError, RecordingError) as exc:
+    except (ManagerError, AgentProcessError, RecordingError, bus.BusConnectionError) as exc:
         error = str(exc)
     finally:
+        record.entry.state = "stopping"
         display.finish()
         launcher.stop()
         manager.close()
@@ -166,3 +261,47 @@ def run(args: argparse.Namespace) -> int:
     if interrupted:
         return 130
     return 1 if summary is None or summary.failed else 0
+
+
+def _is_loopback(endpoint: str) -> bool:
+    return endpoint.startswith(("tcp/127.0.0.1:", "tcp/[::1]:"))
+
+
+def _write_credentials(
+    security: RunSecurity, experiment: Experiment, remote: list[str], endpoints: list[str]
+) -> dict[str, Path]:
+    """Write every principal's credentials; returns agent name -> its file.
+
+    Processes on this host get the loopback endpoint; remote agents the others (TLS).
+    """
+    local = [e for e in endpoints if _is_loopback(e)] or endpoints
+    other = [e for e in endpoints if not _is_loopback(e)] or endpoints
+    remotes = {agent_user(name) for name in remote}
+    files = security.write_credentials(
+        {user: other if user in remotes else local for user in security.grants}
+    )
+    return {name: files[agent_user(name)] for name in experiment.agent_names}
+
+
+class _RegistryDisplay:
+    """The live status display, also kept in the run's registry entry (``hilswarm ps``)."""
+
+    def __init__(self, display: StatusDisplay, record: RunRecord) -> None:
+        self._display = display
+        self._record = record
+
+    def update(self, snapshot: StatusSnapshot) -> None:
+        self._display.update(snapshot)
+        entry = self._record.entry
+        entry.tick = snapshot.k
+        entry.agents.update(snapshot.states)
+        entry.agents.update(dict.fromkeys(snapshot.lost, "lost"))
+        if entry.state in ("running", "paused"):
+            entry.state = "paused" if snapshot.paused else "running"
+        self._record.write()
+
+    def log(self, text: str) -> None:
+        self._display.log(text)
+
+    def finish(self) -> None:
+        self._display.finish()

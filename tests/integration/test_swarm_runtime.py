@@ -22,7 +22,6 @@ from swarm_harness import (
     Spy,
     child_pids,
     connect_spy,
-    free_port,
     pid_alive,
     read_recording,
     wait_for,
@@ -53,7 +52,7 @@ def spies() -> Iterator[list[Spy]]:
 
 
 def start(runs: list[RunProcess], tmp_path: Path, experiment: Path, *args: str) -> RunProcess:
-    run = RunProcess(tmp_path, experiment, "--no-check", *args, port=free_port())
+    run = RunProcess(tmp_path, experiment, "--no-check", *args)
     runs.append(run)
     return run
 
@@ -347,27 +346,29 @@ def test_set_changes_parameters_between_ticks_and_is_acknowledged(
     run.remember_agents(4)
     wait_for(lambda: spy.last_tick() >= 10, 60, "tick 10")
     cli = CLI
-    connect = ["--connect", run.endpoint]
+    # set and stop find the run by name in the run registry: no port, no endpoint.
     ok = subprocess.run(
-        [*cli, "set", "toy", "b", "gain=0.25", *connect],
+        [*cli, "set", "toy", "b", "gain=0.25"],
         capture_output=True,
         text=True,
         timeout=60,
         check=False,
+        env=run.env,
     )
     assert ok.returncode == 0, ok.stdout + ok.stderr
     assert "set {'gain': 0.25}" in ok.stdout
     bad = subprocess.run(
-        [*cli, "set", "toy", "b", 'gain="fast"', *connect],
+        [*cli, "set", "toy", "b", 'gain="fast"'],
         capture_output=True,
         text=True,
         timeout=60,
         check=False,
+        env=run.env,
     )
     assert bad.returncode == 2
     assert "gain must be a number" in bad.stderr
     stop = subprocess.run(
-        [*cli, "stop", "toy", *connect], capture_output=True, text=True, timeout=60, check=False
+        [*cli, "stop", "toy"], capture_output=True, text=True, timeout=60, check=False, env=run.env
     )
     assert stop.returncode == 0, stop.stdout + stop.stderr
     assert run.wait(20) == 0, run.output()
