@@ -99,10 +99,16 @@ class RunProcess:
         args: more ``hilswarm run`` arguments.
         registry: the folder whose run registry the run uses (default ``tmp_path``; runs
             that share one show up together in ``hilswarm ps``).
+        netns: run inside this network namespace (``ip netns exec``; same pid).
     """
 
     def __init__(
-        self, tmp_path: Path, experiment: Path, *args: str, registry: Path | None = None
+        self,
+        tmp_path: Path,
+        experiment: Path,
+        *args: str,
+        registry: Path | None = None,
+        netns: str | None = None,
     ) -> None:
         self.out = tmp_path / "run.mcap"
         self.stdout_path = tmp_path / "run.stdout"
@@ -111,6 +117,7 @@ class RunProcess:
         self.registry = Path(self.env["XDG_RUNTIME_DIR"]) / "hilswarm"
         env = self.env
         command = [
+            *(("ip", "netns", "exec", netns) if netns else ()),
             sys.executable,
             "-m",
             "hilswarm.orchestrator.cli",
