@@ -92,24 +92,13 @@ def test_agent_on_another_host_joins_over_tls(tmp_path: Path, namespaces: tuple[
         credentials = Credentials.read(copy)
         assert credentials.endpoints == tuple(tls) and credentials.ca_pem
         env = run_env(host_b)
+        command = [
+            *("ip", "netns", "exec", ns_b, sys.executable, "-m", "hilswarm.orchestrator.cli"),
+            *("agent", "--credentials", str(copy), "--experiment", str(experiment), "--name", "d"),
+        ]
         with (host_b / "agent.log").open("wb") as log:
             agent = subprocess.Popen(
-                [
-                    "ip",
-                    "netns",
-                    "exec",
-                    ns_b,
-                    sys.executable,
-                    "-m",
-                    "hilswarm.orchestrator.cli",
-                    "agent",
-                    "--credentials",
-                    str(copy),
-                    "--experiment",
-                    str(experiment),
-                    "--name",
-                    "d",
-                ],  # fmt: skip
+                command,
                 env=env,
                 cwd=HERE,
                 stdout=log,
