@@ -39,6 +39,7 @@ from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
 from hilswarm.orchestrator.manager import InstanceManager
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.run_security import RunSecurity
 from hilswarm.orchestrator.run_summary import RunSummary
 
 
@@ -128,9 +129,20 @@ def _process_cpu_s(pid: int) -> float:
 
 
 def run_once(
-    *, n: int, rate_hz: float, mode: str, seconds: float, port: int, record: str, vehicle: str
+    *,
+    n: int,
+    rate_hz: float,
+    mode: str,
+    seconds: float,
+    record: str,
+    vehicle: str,
+    secure: bool = False,
 ) -> Result:
-    """Run one configuration like ``hilswarm run`` does (agents, manager, recorder process)."""
+    """Run one configuration like ``hilswarm run`` does (agents, manager, recorder process).
+
+    ``secure``: with the run's authentication and access control, as ``hilswarm run`` has by
+    default (off: as ``hilswarm run --insecure``).
+    """
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         experiment = load_experiment(
@@ -138,19 +150,33 @@ def run_once(
                 folder, n=n, rate_hz=rate_hz, mode=mode, seconds=seconds, vehicle=vehicle
             )
         )
-        endpoints = [bus.loopback_endpoint(port)]
+        listen = [bus.loopback_endpoint(0)]
+        security = None
+        if secure:
+            security = RunSecurity.for_experiment(experiment, "bench", folder, listen=listen)
         sink: RecorderProcess | Recorder | None = None
         if record == "process":
             sink = RecorderProcess(folder / "run.mcap", experiment, log_time_ns=time.time_ns())
         elif record == "inline":
             sink = Recorder(folder / "run.mcap", experiment, log_time_ns=time.time_ns())
-        manager = InstanceManager(experiment, recorder=sink, listen=endpoints)
+        manager = InstanceManager(
+            experiment,
+            recorder=sink,
+            listen=listen,
+            run_id="bench",
+            security=security.router() if security else None,
+        )
         recorder_cpu = 0.0
         try:
             manager.open()
-            with AgentLauncher(endpoints) as launcher:
+            endpoints = manager.endpoints
+            credentials = security.write_credentials(endpoints) if security else None
+            with AgentLauncher(endpoints, credentials=credentials) as launcher:
                 launcher.start_all(
-                    [agent_config_for(experiment, name) for name in experiment.agent_names]
+                    [
+                        agent_config_for(experiment, name, run_id="bench")
+                        for name in experiment.agent_names
+                    ]
                 )
                 manager.wait_for_agents(300, check=launcher.check)
                 if isinstance(sink, RecorderProcess):
@@ -267,7 +293,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-baseline", action="store_true", help="skip the bare-bus baseline runs"
     )
-    parser.add_argument("--port", type=int, default=17700)
     args = parser.parse_args(argv)
     lockstep_seconds = 30.0
     if args.short:
@@ -285,7 +310,6 @@ def main(argv: list[str] | None = None) -> int:
     print(HEADER, flush=True)
     results: list[Result] = []
     baselines: dict[tuple[str, int, float], BareResult] = {}
-    port = args.port
     for vehicle in fleets:
         configs = [("realtime", n, rate, args.seconds) for n in args.agents for rate in args.rates]
         if not args.no_lockstep:
@@ -293,15 +317,13 @@ def main(argv: list[str] | None = None) -> int:
         for mode, n, rate, seconds in configs:
             if not args.no_baseline and (mode, n, rate) not in baselines:
                 baselines[(mode, n, rate)] = run_bare(
-                    n=n, rate_hz=rate, seconds=seconds, lockstep=mode == "lockstep", port=port
+                    n=n, rate_hz=rate, seconds=seconds, lockstep=mode == "lockstep"
                 )
-                port += 1
                 print(baseline_row(baselines[(mode, n, rate)]), flush=True)
             result = run_once(
-                n=n, rate_hz=rate, mode=mode, seconds=seconds, port=port, record=args.record,
+                n=n, rate_hz=rate, mode=mode, seconds=seconds, record=args.record,
                 vehicle=vehicle,
             )  # fmt: skip
-            port += 1
             results.append(result)
             print(result.row(), flush=True)
     print("\ntargets:")

@@ -27,7 +27,15 @@ from pathlib import Path
 
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import Credentials
-from hilswarm.orchestrator.bus_access import Grants, access_control
+from hilswarm.orchestrator.bus_access import (
+    VIEWER,
+    VIEWER_GRANTS,
+    Grants,
+    access_control,
+    agent_user,
+    run_grants,
+)
+from hilswarm.orchestrator.experiment import Experiment
 
 #: User name of the router itself (it makes no outgoing connection; Zenoh wants one).
 ROUTER_USER = "router"
@@ -171,6 +179,26 @@ class RunSecurity:
             "".join(f"{u}:{p}\n" for u, p in self.passwords.items() if u != ROUTER_USER),
         )
 
+    @classmethod
+    def for_experiment(
+        cls,
+        experiment: Experiment,
+        run_id: str,
+        folder: Path,
+        *,
+        listen: Sequence[str],
+        tls_names: Sequence[str] = (),
+        extra: Mapping[str, Grants] | None = None,
+    ) -> RunSecurity:
+        """The security of a run of ``experiment``: a principal per agent (its row of the
+        adjacency matrix), the operator, the viewer and ``extra`` ones."""
+        grants = run_grants(
+            {name: experiment.neighbours(name) for name in experiment.agent_names},
+            extra={VIEWER: VIEWER_GRANTS, **(extra or {})},
+        )
+        keys = bus.BusKeys(experiment.name, run_id)
+        return cls(keys, grants, folder, listen=listen, tls_names=tls_names)
+
     def router(self) -> bus.SessionSecurity:
         """The router's security: accepted users, its TLS certificate, access control."""
         return bus.SessionSecurity(
@@ -193,14 +221,32 @@ class RunSecurity:
             ca_pem=self.tls.ca_pem if self.tls else None,
         )
 
-    def write_credentials(self, endpoints: Mapping[str, Sequence[str]]) -> dict[str, Path]:
-        """Write every principal's credentials file; returns user -> path.
+    def write_credentials(
+        self, endpoints: Sequence[str], *, remote: Sequence[str] = ()
+    ) -> dict[str, Path]:
+        """Write every principal's credentials file; returns agent name -> its file.
 
         Args:
-            endpoints: user -> the endpoints it connects to (loopback for processes on this
-                host, ``tls/`` ones for other machines).
+            endpoints: the router's bound endpoints. Processes on this host get the loopback
+                ones; the agents in ``remote`` (other machines) the others (TLS).
+            remote: names of agents that join from other machines.
         """
-        return {
-            user: self.credentials(user, endpoints[user]).write(self.folder / f"{user}.cred")
+        local = [e for e in endpoints if is_loopback(e)] or list(endpoints)
+        other = [e for e in endpoints if not is_loopback(e)] or list(endpoints)
+        remotes = {agent_user(name) for name in remote}
+        files = {
+            user: self.credentials(user, other if user in remotes else local).write(
+                self.folder / f"{user}.cred"
+            )
             for user in self.grants
         }
+        return {
+            user.removeprefix("agent."): path
+            for user, path in files.items()
+            if user.startswith("agent.")
+        }
+
+
+def is_loopback(endpoint: str) -> bool:
+    """True for a ``tcp/`` endpoint on this host's loopback address."""
+    return endpoint.startswith(("tcp/127.0.0.1:", "tcp/[::1]:"))

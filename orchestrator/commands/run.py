@@ -31,7 +31,6 @@ from types import FrameType
 
 from hilswarm.agents import bus
 from hilswarm.agents.errors import RecordingError
-from hilswarm.orchestrator.bus_access import VIEWER, VIEWER_GRANTS, agent_user, run_grants
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
@@ -44,7 +43,7 @@ from hilswarm.orchestrator.manager import (
 )
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_registry import RunEntry, RunRecord
-from hilswarm.orchestrator.run_security import RunSecurity
+from hilswarm.orchestrator.run_security import RunSecurity, is_loopback
 from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
 
@@ -173,16 +172,8 @@ def _run(
     out = Path(record.entry.out)
     security = None
     if secure:
-        grants = run_grants(
-            {name: experiment.neighbours(name) for name in experiment.agent_names},
-            extra={VIEWER: VIEWER_GRANTS},
-        )
-        security = RunSecurity(
-            bus.BusKeys(experiment.name, run_id),
-            grants,
-            record.folder,
-            listen=listen,
-            tls_names=args.tls_name,
+        security = RunSecurity.for_experiment(
+            experiment, run_id, record.folder, listen=listen, tls_names=args.tls_name
         )
     display = StatusDisplay(sys.stdout)
     recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
@@ -213,9 +204,9 @@ def _run(
     try:
         manager.open()
         endpoints = manager.endpoints
-        launcher.endpoints = [e for e in endpoints if _is_loopback(e)] or endpoints
+        launcher.endpoints = [e for e in endpoints if is_loopback(e)] or endpoints
         if security is not None:
-            launcher.credentials = _write_credentials(security, experiment, args.remote, endpoints)
+            launcher.credentials = security.write_credentials(endpoints, remote=args.remote)
         record.entry.endpoints = endpoints
         record.entry.state = "waiting"
         record.write()
@@ -261,26 +252,6 @@ def _run(
     if interrupted:
         return 130
     return 1 if summary is None or summary.failed else 0
-
-
-def _is_loopback(endpoint: str) -> bool:
-    return endpoint.startswith(("tcp/127.0.0.1:", "tcp/[::1]:"))
-
-
-def _write_credentials(
-    security: RunSecurity, experiment: Experiment, remote: list[str], endpoints: list[str]
-) -> dict[str, Path]:
-    """Write every principal's credentials; returns agent name -> its file.
-
-    Processes on this host get the loopback endpoint; remote agents the others (TLS).
-    """
-    local = [e for e in endpoints if _is_loopback(e)] or endpoints
-    other = [e for e in endpoints if not _is_loopback(e)] or endpoints
-    remotes = {agent_user(name) for name in remote}
-    files = security.write_credentials(
-        {user: other if user in remotes else local for user in security.grants}
-    )
-    return {name: files[agent_user(name)] for name in experiment.agent_names}
 
 
 class _RegistryDisplay:
