@@ -130,7 +130,9 @@ class Agent:
         config: what to build and where it sits in the graph.
         endpoints: Zenoh endpoints to connect to (the orchestrator's router or a zenohd).
         security: the agent's credentials for the run's router (``None``: none).
-        hardware_factory: builds vehicle/board/controller (tests may pass their own).
+        hardware_factory: builds vehicle/board/controller from the config, the bus endpoints
+            and the credentials (keywords ``endpoints``, ``security``; tests may pass their
+            own).
         clock: monotonic clock [s] used for tick timings.
         startup_timeout_s: bound on waiting for the bus and the manager.
     """
@@ -141,7 +143,7 @@ class Agent:
         endpoints: Sequence[str],
         *,
         security: bus.SessionSecurity | None = None,
-        hardware_factory: Callable[[AgentConfig], AgentHardware] = build_hardware,
+        hardware_factory: Callable[..., AgentHardware] = build_hardware,
         clock: Callable[[], float] = time.perf_counter,
         startup_timeout_s: float = DEFAULT_STARTUP_TIMEOUT_S,
     ) -> None:
@@ -376,7 +378,11 @@ class Agent:
         try:
             session = self._open_bus()
             self.lifecycle.connect()
-            self.use_hardware(self._hardware_factory(self.config))
+            self.use_hardware(
+                self._hardware_factory(
+                    self.config, endpoints=self.endpoints, security=self._security
+                )
+            )
             self.lifecycle.configure()
             self._declare(session)
             self.lifecycle.arm(detail=f"neighbours: {', '.join(self.config.neighbours) or '-'}")

@@ -26,6 +26,11 @@ is ever consumed):
   :data:`TELEMETRY_PERIOD_S` of wall time and once more when the agent goes safe or stops.
 * ``agent/<name>/telemetry/<channel>`` — a single telemetry vector (:func:`encode_vector`),
   for tools that publish one; agents publish batches.
+* ``agent/<name>/link/tx``, ``agent/<name>/link/rx`` — wire-protocol bytes between an agent
+  with an ``xbee://`` link and the XBee gateway; ``agent/<name>/link/robot/{in,out}`` — the UART
+  of its simulated robot behind the simulated air.
+* ``gateway/status``, ``gateway/stats`` — the XBee gateway's state (JSON) and per-tick radio
+  figures.
 * ``alive/<name>`` — the agent's liveliness token (kill -9 is seen when it disappears).
 
 Agents subscribe only to explicit keys, never wildcards, so a non-neighbour's output is never
@@ -41,6 +46,10 @@ between peers). :func:`session_config` builds every configuration, in one place:
 scouting and gossip are off; the link lease is short (1 s) so that a hung process is dropped
 quickly; :class:`SessionSecurity` adds Zenoh's user/password authentication, TLS and the
 router's access control (see docs/security.md).
+
+:data:`LEAN_RUNTIME` hands Zenoh's runtime pools over to one application worker thread (the
+``ZENOH_RUNTIME`` environment variable): a client then runs 4 threads instead of 9. It is safe
+only where no bus callback blocks (one blocked callback would starve the lease keep-alives).
 """
 
 from __future__ import annotations
@@ -192,6 +201,24 @@ class BusKeys:
         """Key of agent ``name``'s telemetry channel ``channel``."""
         check_key_name(channel, what="telemetry channel")
         return self.agent(name, f"telemetry/{channel}")
+
+    def link_tx(self, name: str) -> str:
+        """Key of the wire-protocol bytes agent ``name`` sends to its board via the gateway."""
+        return self.agent(name, "link/tx")
+
+    def link_rx(self, name: str) -> str:
+        """Key of the wire-protocol bytes the gateway received from agent ``name``'s board."""
+        return self.agent(name, "link/rx")
+
+    def link_robot(self, name: str, direction: str) -> str:
+        """Key of a simulated robot's UART bytes (``direction``: ``in`` to it, ``out`` from it)."""
+        if direction not in ("in", "out"):
+            raise BusKeyError(f"robot UART direction must be 'in' or 'out', got {direction!r}")
+        return self.agent(name, f"link/robot/{direction}")
+
+    def gateway(self, leaf: str) -> str:
+        """Key ``hilswarm/<exp>/gateway/<leaf>`` (``status``, ``stats``)."""
+        return f"{self.prefix}/gateway/{leaf}"
 
     def alive(self, name: str) -> str:
         """Key of agent ``name``'s liveliness token."""
@@ -712,6 +739,14 @@ def has_subscribers(publisher: zenoh.Publisher) -> bool:
     """
     status = publisher.matching_status
     return bool(getattr(status, "matching", status))
+
+
+#: Zenoh runtime pools for hilswarm processes (the ``ZENOH_RUNTIME`` environment variable,
+#: read when a process opens its first session): every pool handed over to one worker thread.
+LEAN_RUNTIME = (
+    "(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), "
+    "rx: (handover: app), net: (handover: app))"
+)
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:

@@ -20,7 +20,8 @@ What follows from the experiment (:func:`run_grants`):
 
 * agent i: put ``agent/<i>/**``, tokens ``alive/<i>``, queryable ``agent/<i>/set``, subscribe
   ``tick``, ``control`` and ``agent/<j>/y`` for exactly its graph neighbours j (the adjacency
-  matrix enforced by the router), watch ``alive/_manager``;
+  matrix enforced by the router), and its own ``agent/<i>/link/{rx,robot/in}`` (a board behind
+  the XBee gateway), watch ``alive/_manager``;
 * operator (``hilswarm stop`` / ``set``): put ``manager/request``, subscribe
   ``manager/status``, query ``agent/*/set``;
 * viewer (live views, tools): subscribe everything, watch every token, put nothing;
@@ -68,8 +69,10 @@ VIEWER = "viewer"
 VIEWER_GRANTS = Grants(subscribe=("**",), watch_tokens=("alive/*",))
 #: The motion-capture client: publishes poses under ``mocap/``.
 MOCAP_GRANTS = Grants(put=("mocap/**",))
-#: The radio gateway: relays agents' link traffic both ways.
-GATEWAY_GRANTS = Grants(put=("agent/*/link/**",), subscribe=("agent/*/link/**",))
+#: User name of the XBee gateway principal.
+GATEWAY = "gateway"
+#: The radio gateway: relays agents' link traffic both ways, announces its state.
+GATEWAY_GRANTS = Grants(put=("agent/*/link/**", "gateway/**"), subscribe=("agent/*/link/**",))
 
 
 def agent_grants(name: str, neighbours: Sequence[str]) -> Grants:
@@ -77,7 +80,14 @@ def agent_grants(name: str, neighbours: Sequence[str]) -> Grants:
     bus.check_key_name(name, what="agent name")
     return Grants(
         put=(f"agent/{name}/**",),
-        subscribe=("tick", "control", *(f"agent/{j}/y" for j in neighbours)),
+        subscribe=(
+            "tick",
+            "control",
+            *(f"agent/{j}/y" for j in neighbours),
+            # its board behind the XBee gateway, and the UART of its simulated robot there
+            f"agent/{name}/link/rx",
+            f"agent/{name}/link/robot/in",
+        ),
         tokens=(f"alive/{name}",),
         watch_tokens=(f"alive/{MANAGER_TOKEN}",),
         queryables=(f"agent/{name}/set",),

@@ -49,6 +49,7 @@ from hilswarm.agents.registry import (
 from hilswarm.orchestrator.experiment import AgentSpec, Experiment, parse_experiment
 from hilswarm.orchestrator.graph_facts import GraphFacts, graph_facts
 from hilswarm.orchestrator.problems import ExperimentError, Problem
+from hilswarm.orchestrator.xbee_check import check_gateway
 
 logger = logging.getLogger(__name__)
 
@@ -112,6 +113,8 @@ def check_experiment(experiment: Experiment, report: CheckReport | None = None) 
     output_sizes = {name: check.n_outputs for name, check in built.items()}
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
+    vehicles = {name: check.vehicle for name, check in built.items()}
+    check_gateway(experiment, vehicles, report.problems, report.warnings)
     return report
 
 

@@ -89,7 +89,7 @@ AGENT_KEYS: tuple[str, ...] = (
     "initial_state",
     "calibration",
 )
-TOP_LEVEL_KEYS: tuple[str, ...] = ("experiment", "graph", "defaults", "agents")
+TOP_LEVEL_KEYS: tuple[str, ...] = ("experiment", "graph", "defaults", "agents", "gateway")
 #: Keys :func:`load_experiment` accepts in ``overrides``.
 OVERRIDE_KEYS: tuple[str, ...] = (
     "mode",
@@ -175,6 +175,7 @@ class Experiment:
     graph_file: Path | None = None
     on_agent_safe: Literal["continue", "stop"] = "continue"
     lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
+    gateway: Any = None
 
     @property
     def dt(self) -> float:
@@ -326,6 +327,7 @@ class _Parser:
             return None
         names, adjacency, graph_file = graph
         self._match_names(names, agent_tables)
+        gateway = self._gateway(self.data.get("gateway"))
         if self.problems:
             return None
         adjacency.setflags(write=False)
@@ -344,7 +346,26 @@ class _Parser:
             graph_file=graph_file,
             on_agent_safe=settings["on_agent_safe"],
             lockstep_window=settings["lockstep_window"],
+            gateway=gateway,
         )
+
+    def _gateway(self, table: Any) -> Any:
+        """``[gateway]`` as a GatewayConfig (``None`` when absent)."""
+        if table is None:
+            return None
+        from hilswarm.agents.xbee.config import (  # noqa: PLC0415 - only files with [gateway]
+            GatewayConfig,
+            GatewayConfigError,
+        )
+
+        if not isinstance(table, dict):
+            self.problem("gateway", "must be a table: [gateway]")
+            return None
+        try:
+            return GatewayConfig.from_table(table)
+        except GatewayConfigError as exc:
+            self.problem("gateway", str(exc))
+            return None
 
     # -- [experiment] ------------------------------------------------------------------------
 

@@ -27,7 +27,10 @@ from pathlib import Path
 
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import Credentials
+from hilswarm.agents.link.url import link_scheme
 from hilswarm.orchestrator.bus_access import (
+    GATEWAY,
+    GATEWAY_GRANTS,
     VIEWER,
     VIEWER_GRANTS,
     Grants,
@@ -191,10 +194,14 @@ class RunSecurity:
         extra: Mapping[str, Grants] | None = None,
     ) -> RunSecurity:
         """The security of a run of ``experiment``: a principal per agent (its row of the
-        adjacency matrix), the operator, the viewer and ``extra`` ones."""
+        adjacency matrix), the operator, the viewer, the XBee gateway when an agent links
+        through ``xbee://``, and ``extra`` ones."""
+        others: dict[str, Grants] = {VIEWER: VIEWER_GRANTS}
+        if any(spec.link and link_scheme(spec.link) == "xbee" for spec in experiment.agents):
+            others[GATEWAY] = GATEWAY_GRANTS
         grants = run_grants(
             {name: experiment.neighbours(name) for name in experiment.agent_names},
-            extra={VIEWER: VIEWER_GRANTS, **(extra or {})},
+            extra={**others, **(extra or {})},
         )
         keys = bus.BusKeys(experiment.name, run_id)
         return cls(keys, grants, folder, listen=listen, tls_names=tls_names)

@@ -31,9 +31,11 @@ from types import FrameType
 
 from hilswarm.agents import bus
 from hilswarm.agents.errors import RecordingError
+from hilswarm.orchestrator.bus_access import GATEWAY
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
+from hilswarm.orchestrator.gateway_launcher import GatewayLauncher, GatewayProcessError
 from hilswarm.orchestrator.launcher import AgentLauncher, AgentProcessError, agent_config_for
 from hilswarm.orchestrator.manager import (
     DEFAULT_ANSWER_TIMEOUT_S,
@@ -113,10 +115,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="lockstep: an agent silent this long on one tick is lost [s]",
     )
     parser.add_argument(
+        "--remote-gateway",
+        action="store_true",
+        help="do not start the XBee gateway here: it joins with `hilswarm gateway`",
+    )
+    parser.add_argument(
         "--no-check",
         action="store_true",
         help="skip the vehicle/controller checks (e.g. remote agents' classes not installed)",
     )
+
+
+def _gateway_launcher(
+    experiment: Experiment, run_id: str, args: argparse.Namespace
+) -> GatewayLauncher | None:
+    """The gateway process of ``experiment`` when an agent links through XBee (and it runs
+    here)."""
+    if args.remote_gateway:
+        return None
+    from hilswarm.agents.xbee.gateway_process import plan_for  # noqa: PLC0415 - xbee runs only
+
+    plan = plan_for(experiment)
+    if plan is None:
+        return None
+    return GatewayLauncher(plan, [], run_id=run_id, verbose=max(0, args.verbose - 1))
 
 
 def default_output(experiment: Experiment, now: datetime.datetime) -> Path:
@@ -192,6 +214,7 @@ def _run(
         describe_process=launcher.describe,
     )
     interrupted = False
+    gateway = _gateway_launcher(experiment, run_id, args)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         nonlocal interrupted
@@ -210,6 +233,11 @@ def _run(
         record.entry.endpoints = endpoints
         record.entry.state = "waiting"
         record.write()
+        if gateway is not None:
+            gateway.endpoints = launcher.endpoints
+            if security is not None:
+                gateway.credentials = security.folder / f"{GATEWAY}.cred"
+            display.log(f"XBee gateway: {gateway.start()}")
         launcher.start_all(
             [
                 agent_config_for(experiment, n, run_id=run_id)
@@ -232,12 +260,20 @@ def _run(
         recorder.wait_ready()
         record.entry.state = "running"
         summary = manager.run()
-    except (ManagerError, AgentProcessError, RecordingError, bus.BusConnectionError) as exc:
+    except (
+        ManagerError,
+        AgentProcessError,
+        RecordingError,
+        GatewayProcessError,
+        bus.BusConnectionError,
+    ) as exc:
         error = str(exc)
     finally:
         record.entry.state = "stopping"
         display.finish()
         launcher.stop()
+        if gateway is not None:
+            gateway.stop()
         manager.close()
         if recorder.close() != 0 and not error:
             error = f"the recording {out} is incomplete (see the recorder's log above)"
