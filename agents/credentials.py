@@ -28,6 +28,18 @@ from hilswarm.agents.errors import HilswarmError
 CREDENTIALS_VERSION = 1
 
 
+def write_private(path: Path, text: str) -> Path:
+    """Write ``text`` to ``path`` with mode 0600: created so (never readable by others, not
+    even for a moment), then renamed into place (readers never see half a file)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as file:
+        file.write(text)
+    os.replace(tmp, path)
+    return path
+
+
 class CredentialsError(HilswarmError, ValueError):
     """A credentials file is missing, malformed, or readable by other users."""
 
@@ -57,15 +69,9 @@ class Credentials:
         return bus.SessionSecurity(user=self.user, password=self.password, ca_pem=self.ca_pem)
 
     def write(self, path: Path) -> Path:
-        """Write to ``path`` with mode 0600 (created so, never readable by others meanwhile)."""
+        """Write to ``path`` with mode 0600 (see :func:`write_private`)."""
         data = {"version": CREDENTIALS_VERSION, **asdict(self), "endpoints": list(self.endpoints)}
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.unlink(missing_ok=True)
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w", encoding="utf-8") as file:
-            json.dump(data, file)
-        os.replace(tmp, path)
-        return path
+        return write_private(path, json.dumps(data))
 
     @classmethod
     def read(cls, path: Path) -> Credentials:

@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import datetime
 import ipaddress
-import os
 import secrets
 import socket
 from collections.abc import Iterable, Mapping, Sequence
@@ -26,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hilswarm.agents import bus
-from hilswarm.agents.credentials import Credentials
+from hilswarm.agents.credentials import Credentials, write_private
 from hilswarm.agents.link.url import link_scheme
 from hilswarm.orchestrator.bus_access import (
     GATEWAY,
@@ -137,17 +136,6 @@ def host_names(listen: Sequence[str]) -> list[str]:
     with contextlib.suppress(OSError):
         names += [str(info[4][0]) for info in socket.getaddrinfo(hostname, None)]
     return list(dict.fromkeys(n for n in names if n))
-
-
-def write_private(path: Path, text: str) -> Path:
-    """Write ``text`` to ``path``, created with mode 0600."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.unlink(missing_ok=True)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w", encoding="utf-8") as file:
-        file.write(text)
-    os.replace(tmp, path)
-    return path
 
 
 class RunSecurity:

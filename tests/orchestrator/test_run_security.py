@@ -85,6 +85,8 @@ def test_agent_may_hear_exactly_its_neighbours() -> None:
         "hilswarm/toy/r1/tick",
         "hilswarm/toy/r1/control",
         "hilswarm/toy/r1/agent/b/y",
+        "hilswarm/toy/r1/agent/a/link/rx",  # its own board behind the XBee gateway
+        "hilswarm/toy/r1/agent/a/link/robot/in",
     ]
     assert rules["agent.a/put/0"]["key_exprs"] == ["hilswarm/toy/r1/agent/a/**"]
     assert rules["agent.a/tokens/0"]["key_exprs"] == ["hilswarm/toy/r1/alive/a"]
