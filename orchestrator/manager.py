@@ -351,8 +351,8 @@ class InstanceManager:
             logger.warning("operator request not understood: %s", exc)
             return
         payload = bus.encode_control(command, reason=reason)
+        self._events.put((_CONTROL, payload))  # first: the manager knows before any agent
         self._control_pub.put(payload)
-        self._events.put((_CONTROL, payload))
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         try:

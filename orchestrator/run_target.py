@@ -92,3 +92,10 @@ def find_target(
         security = creds.security()
         endpoints = tuple(connect or creds.endpoints)
     return RunTarget(keys, endpoints, security, entry)
+
+
+def target_from_args(args: argparse.Namespace, name: str, user: str) -> RunTarget:
+    """:func:`find_target` with the arguments of :func:`add_target_arguments`."""
+    return find_target(
+        name, user, run_id=args.run, credentials=args.credentials, connect=args.connect
+    )

@@ -25,7 +25,7 @@ from hilswarm.orchestrator.bus_access import agent_user
 from hilswarm.orchestrator.commands.overrides import overrides_from_args
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import agent_config_for
-from hilswarm.orchestrator.run_target import add_target_arguments, find_target
+from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "start one agent process that joins a running experiment"
 
@@ -51,12 +51,6 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
-    target = find_target(
-        experiment.name,
-        agent_user(args.name),
-        run_id=args.run,
-        credentials=args.credentials,
-        connect=args.connect,
-    )
+    target = target_from_args(args, experiment.name, agent_user(args.name))
     config = agent_config_for(experiment, args.name, run_id=target.keys.run_id)
     return run_agent(config, target.endpoints, target.security)

@@ -25,7 +25,7 @@ from hilswarm.agents.xbee.gateway_process import plan_for, serve
 from hilswarm.orchestrator.bus_access import GATEWAY
 from hilswarm.orchestrator.commands.overrides import overrides_from_args
 from hilswarm.orchestrator.experiment import load_experiment
-from hilswarm.orchestrator.run_target import add_target_arguments, find_target
+from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "run the XBee gateway of an experiment (one coordinator radio for every xbee:// robot)"
 
@@ -46,13 +46,7 @@ def run(args: argparse.Namespace) -> int:
     if plan is None:
         print(f"hilswarm gateway: no agent of {args.file} links through xbee://", file=sys.stderr)
         return 2
-    target = find_target(
-        experiment.name,
-        GATEWAY,
-        run_id=args.run,
-        credentials=args.credentials,
-        connect=args.connect,
-    )
+    target = target_from_args(args, experiment.name, GATEWAY)
     stop = threading.Event()
 
     def on_signal(_signum: int, _frame: FrameType | None) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 
 from hilswarm.agents import bus
 from hilswarm.orchestrator.bus_access import OPERATOR
-from hilswarm.orchestrator.run_target import add_target_arguments, find_target
+from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "change controller parameters of a running agent"
 
@@ -63,13 +63,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"hilswarm set: {exc}", file=sys.stderr)
         return 2
-    target = find_target(
-        args.experiment,
-        OPERATOR,
-        run_id=args.run,
-        credentials=args.credentials,
-        connect=args.connect,
-    )
+    target = target_from_args(args, args.experiment, OPERATOR)
     if target.entry is not None and args.agent not in target.entry.agents:
         known = ", ".join(target.entry.agents) or "-"
         print(

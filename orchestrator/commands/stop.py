@@ -21,7 +21,7 @@ import threading
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.orchestrator.bus_access import OPERATOR
-from hilswarm.orchestrator.run_target import add_target_arguments, find_target
+from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "bring every agent of a running experiment to safe mode and stop"
 
@@ -48,13 +48,7 @@ def run(args: argparse.Namespace) -> int:
         command = bus.ControlCommand.RESUME
     else:
         command = bus.ControlCommand.STOP
-    target = find_target(
-        args.experiment,
-        OPERATOR,
-        run_id=args.run,
-        credentials=args.credentials,
-        connect=args.connect,
-    )
+    target = target_from_args(args, args.experiment, OPERATOR)
     keys = target.keys
     matched = threading.Event()
     stopped = threading.Event()
