@@ -18,7 +18,7 @@ from typing import Any
 from hilswarm.agents import bus
 from hilswarm.agents.control import ControlModel
 from hilswarm.agents.errors import HilswarmError
-from hilswarm.agents.link.url import board_for_url, link_scheme
+from hilswarm.agents.link.url import board_for_url, is_simulated, link_scheme
 from hilswarm.agents.registry import resolve_controller, resolve_vehicle
 
 #: Board watchdog when the experiment gives none [s].
@@ -53,6 +53,12 @@ class AgentConfig:
         mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
         mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
         run_id: the run's id (bus key prefix ``hilswarm/<exp>/<run_id>``; empty: none).
+        mocap: the experiment's ``[mocap]`` section as plain data
+            (:meth:`~hilswarm.agents.mocap.config.MocapSettings.to_dict`), or ``None``: the
+            pose then comes from the link (a ``SimulatedMocap`` of a ``sim://`` plant).
+        mocap_body: this agent's rigid body (``None``: its name).
+        mocap_neighbours: the graph neighbours' rigid bodies (agent name -> body), received
+            only when the controller ``uses_neighbour_poses``.
     """
 
     experiment: str
@@ -73,6 +79,9 @@ class AgentConfig:
     mocap_noise_std_m: float = 0.0
     mocap_noise_std_rad: float = 0.0
     run_id: str = ""
+    mocap: dict[str, Any] | None = None
+    mocap_body: str | None = None
+    mocap_neighbours: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
@@ -157,6 +166,10 @@ def build_hardware(
     if getattr(vehicle, "needs_board", True):
         board = _open_board(config, vehicle, endpoints, security)
     controller = resolve_controller(config.controller)()
+    source = getattr(vehicle, "pose_source", None)
+    asks = getattr(controller, "uses_neighbour_poses", False) and config.mocap_neighbours
+    if asks and hasattr(source, "neighbour_poses"):
+        source.neighbours = dict(config.mocap_neighbours)
     model = ControlModel(
         controller,
         dt=config.dt,
@@ -164,7 +177,29 @@ def build_hardware(
         n_outputs=int(vehicle.n_outputs),
         params=config.params,
     )
+    if asks and hasattr(source, "neighbour_poses"):
+        model.neighbour_poses = source.neighbour_poses
     return AgentHardware(vehicle=vehicle, board=board, model=model)
+
+
+def mocap_pose_source(config: AgentConfig, vehicle: Any, plant: Any | None) -> Any:
+    """The bus pose source of ``config``'s body; with ``system = "sim"`` and a simulated plant
+    it also feeds the plant's true pose to the simulator."""
+    from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap runs only
+    from hilswarm.agents.mocap.pose_source import MocapPoseSource  # noqa: PLC0415
+
+    settings = MocapSettings.from_dict(config.mocap or {})
+    feed = plant if settings.system == "sim" and plant is not None else None
+    source = MocapPoseSource(
+        config.mocap_body or config.name,
+        hold_frames=settings.hold_frames,
+        hold_s=settings.hold_s,
+        start_timeout_s=settings.start_timeout_s,
+        truth=feed,
+        on_lost=vehicle.enter_safe_mode,
+    )
+    source.add_telemetry(vehicle.telemetry)
+    return source
 
 
 def _open_board(
@@ -188,12 +223,14 @@ def _open_board(
             "security": security,
             "agent": config.name,
         }
-    if scheme in ("sim", "simavr") or (scheme == "xbee" and "sim=" in config.link):
+    if is_simulated(config.link):
         plant = vehicle.simulated_hardware(
             initial_state=list(config.initial_state) or None, dt=config.dt
         )
         options.update(plant=plant, dt=config.dt)
-        if plant is not None:
+        if config.mocap is not None:
+            vehicle.pose_source = mocap_pose_source(config, vehicle, plant)
+        elif plant is not None:
             from hilswarm.agents.sim.mocap import SimulatedMocap  # noqa: PLC0415 - sim only
 
             vehicle.pose_source = SimulatedMocap(
@@ -202,6 +239,8 @@ def _open_board(
                 noise_std_rad=config.mocap_noise_std_rad,
                 seed=(config.seed or 0) + config.index,  # distinct, reproducible per agent
             )
+    elif config.mocap is not None:
+        vehicle.pose_source = mocap_pose_source(config, vehicle, None)
     board = board_for_url(config.link, **options)
     vehicle.connect(board, watchdog_s=config.watchdog_s or DEFAULT_WATCHDOG_S)
     return board

@@ -15,6 +15,7 @@ File layout (``version`` 1)::
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import stat
@@ -104,3 +105,25 @@ class Credentials:
             )
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             raise CredentialsError(f"credentials {path} are malformed: {exc}") from None
+
+
+def add_credentials_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--credentials FILE`` and ``--run-id`` of a process the orchestrator starts (its
+    ``--connect`` endpoints default to the file's)."""
+    parser.add_argument("--credentials", type=Path, help="this process's credentials (0600)")
+    parser.add_argument("--run-id", default="", help="the run's id (without --credentials)")
+
+
+def bus_access_from_args(
+    args: argparse.Namespace,
+) -> tuple[list[str], str, bus.SessionSecurity | None]:
+    """``(endpoints, run_id, security)`` from ``--connect`` and :func:`add_credentials_arguments`.
+
+    Raises:
+        CredentialsError: the credentials file is unreadable, open to others, or malformed.
+    """
+    credentials = Credentials.read(args.credentials) if args.credentials else None
+    if credentials is None:
+        return list(args.connect), args.run_id, None
+    endpoints = list(args.connect) or list(credentials.endpoints)
+    return endpoints, credentials.run_id, credentials.security()

@@ -22,14 +22,16 @@ What follows from the experiment (:func:`run_grants`):
   ``tick``, ``control`` and ``agent/<j>/y`` for exactly its graph neighbours j (the adjacency
   matrix enforced by the router), and its own ``agent/<i>/link/{rx,robot/in}`` (a board behind
   the XBee gateway), watch ``alive/_manager``;
-* operator (``hilswarm stop`` / ``set``): put ``manager/request``, subscribe
-  ``manager/status``, query ``agent/*/set``;
+* operator (``hilswarm stop`` / ``set``): put ``manager/request`` (and ``gateway/sim``, fault
+  commands to a simulated XBee coordinator), subscribe ``manager/status``, query
+  ``agent/*/set``;
 * viewer (live views, tools): subscribe everything, watch every token, put nothing;
 * only the manager (local) puts ``tick`` and ``control``.
 
 Other processes the orchestrator starts get principals of their own through ``extra``:
-:data:`MOCAP_GRANTS` (put ``mocap/**``) and :data:`GATEWAY_GRANTS` (put and subscribe
-``agent/*/link/**``) are ready for the motion-capture client and the radio gateway.
+:data:`MOCAP_GRANTS` (the mocap process and its simulator: put ``mocap/**`` and
+``mocap_status``, hear ``mocap_truth/**``) and :data:`GATEWAY_GRANTS` (the XBee gateway: put
+and subscribe ``agent/*/link/**``, put ``gateway/{status,stats}``, hear ``gateway/sim``).
 """
 
 from __future__ import annotations
@@ -67,19 +69,41 @@ class Grants:
 VIEWER = "viewer"
 #: The viewer: subscribes to every key of the run and watches every liveliness token.
 VIEWER_GRANTS = Grants(subscribe=("**",), watch_tokens=("alive/*",))
-#: The motion-capture client: publishes poses under ``mocap/``.
-MOCAP_GRANTS = Grants(put=("mocap/**",))
+#: User name of the motion-capture principal (the mocap process and its simulator).
+MOCAP = "mocap"
+#: The motion-capture processes: publish poses under ``mocap/`` and their status; the
+#: simulator hears the simulated plants' true poses.
+MOCAP_GRANTS = Grants(
+    put=("mocap/**", "mocap_status"),
+    subscribe=("mocap_truth/**",),
+    tokens=("alive/_mocap",),
+)
 #: User name of the XBee gateway principal.
 GATEWAY = "gateway"
 #: The radio gateway: relays agents' link traffic both ways, announces its state.
-GATEWAY_GRANTS = Grants(put=("agent/*/link/**", "gateway/**"), subscribe=("agent/*/link/**",))
+GATEWAY_GRANTS = Grants(
+    put=("agent/*/link/**", "gateway/status", "gateway/stats"),
+    subscribe=("agent/*/link/**", "gateway/sim"),
+)
 
 
-def agent_grants(name: str, neighbours: Sequence[str]) -> Grants:
-    """Grants of agent ``name`` hearing ``neighbours`` (its row of the adjacency matrix)."""
+def agent_grants(
+    name: str, neighbours: Sequence[str], bodies: Mapping[str, str] | None = None
+) -> Grants:
+    """Grants of agent ``name`` hearing ``neighbours`` (its row of the adjacency matrix).
+
+    ``bodies`` (agent -> mocap rigid body, with ``[mocap]``): it also hears its own body's
+    and its neighbours' bodies' poses and the mocap status, and puts its simulated plant's
+    true pose (for the mocap simulator).
+    """
     bus.check_key_name(name, what="agent name")
+    mocap_put: tuple[str, ...] = ()
+    mocap_sub: tuple[str, ...] = ()
+    if bodies:
+        mocap_put = (f"mocap_truth/{bodies[name]}",)
+        mocap_sub = ("mocap_status", *(f"mocap/{bodies[n]}" for n in (name, *neighbours)))
     return Grants(
-        put=(f"agent/{name}/**",),
+        put=(f"agent/{name}/**", *mocap_put),
         subscribe=(
             "tick",
             "control",
@@ -87,6 +111,7 @@ def agent_grants(name: str, neighbours: Sequence[str]) -> Grants:
             # its board behind the XBee gateway, and the UART of its simulated robot there
             f"agent/{name}/link/rx",
             f"agent/{name}/link/robot/in",
+            *mocap_sub,
         ),
         tokens=(f"alive/{name}",),
         watch_tokens=(f"alive/{MANAGER_TOKEN}",),
@@ -94,18 +119,26 @@ def agent_grants(name: str, neighbours: Sequence[str]) -> Grants:
     )
 
 
-#: The operator: commands to the manager, the manager's state, parameter changes.
+#: The operator: commands to the manager, the manager's state, parameter changes, fault
+#: commands to a simulated XBee coordinator (``gateway/sim``).
 OPERATOR_GRANTS = Grants(
-    put=("manager/request",), subscribe=("manager/status",), query=("agent/*/set",)
+    put=("manager/request", "gateway/sim"),
+    subscribe=("manager/status",),
+    query=("agent/*/set",),
 )
 
 
 def run_grants(
-    neighbours: Mapping[str, Sequence[str]], extra: Mapping[str, Grants] | None = None
+    neighbours: Mapping[str, Sequence[str]],
+    extra: Mapping[str, Grants] | None = None,
+    bodies: Mapping[str, str] | None = None,
 ) -> dict[str, Grants]:
-    """Every principal of a run: one per agent (``neighbours``: agent -> who it hears), the
-    operator, and ``extra`` (user name -> grants)."""
-    grants = {agent_user(name): agent_grants(name, heard) for name, heard in neighbours.items()}
+    """Every principal of a run: one per agent (``neighbours``: agent -> who it hears;
+    ``bodies``: agent -> mocap body, with ``[mocap]``), the operator, and ``extra`` (user name
+    -> grants)."""
+    grants = {
+        agent_user(name): agent_grants(name, heard, bodies) for name, heard in neighbours.items()
+    }
     grants[OPERATOR] = OPERATOR_GRANTS
     grants.update(extra or {})
     return grants

@@ -30,6 +30,8 @@ from hilswarm.agents.link.url import link_scheme
 from hilswarm.orchestrator.bus_access import (
     GATEWAY,
     GATEWAY_GRANTS,
+    MOCAP,
+    MOCAP_GRANTS,
     VIEWER,
     VIEWER_GRANTS,
     Grants,
@@ -183,13 +185,18 @@ class RunSecurity:
     ) -> RunSecurity:
         """The security of a run of ``experiment``: a principal per agent (its row of the
         adjacency matrix), the operator, the viewer, the XBee gateway when an agent links
-        through ``xbee://``, and ``extra`` ones."""
+        through ``xbee://``, the mocap processes with ``[mocap]``, and ``extra`` ones."""
         others: dict[str, Grants] = {VIEWER: VIEWER_GRANTS}
         if any(spec.link and link_scheme(spec.link) == "xbee" for spec in experiment.agents):
             others[GATEWAY] = GATEWAY_GRANTS
+        bodies = None
+        if experiment.mocap is not None:
+            others[MOCAP] = MOCAP_GRANTS
+            bodies = {spec.name: spec.body for spec in experiment.agents}
         grants = run_grants(
             {name: experiment.neighbours(name) for name in experiment.agent_names},
             extra={**others, **(extra or {})},
+            bodies=bodies,
         )
         keys = bus.BusKeys(experiment.name, run_id)
         return cls(keys, grants, folder, listen=listen, tls_names=tls_names)

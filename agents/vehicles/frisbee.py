@@ -88,6 +88,8 @@ class FrisbeeBot(Vehicle):
         sim_battery_drain_v_per_s: simulated discharge rate [V/s] (``sim://`` only; 0 = none).
     """
 
+    #: Outputs come from motion capture (``pose_source``): ``check`` wants a source of it.
+    needs_pose: ClassVar[bool] = True
     n_inputs: ClassVar[int] = 2
     n_outputs: ClassVar[int] = 3
     input_names: ClassVar[tuple[str, ...]] = ("v_left", "v_right")

@@ -5,6 +5,10 @@ session (principal ``gateway``), starts the simulated coordinator when ``[gatewa
 "sim"`` (one simulated radio per ``xbee://`` agent, its robot reached through
 ``agent/<name>/link/robot/{in,out}``), then runs the :class:`~.gateway.Gateway` until SIGTERM /
 SIGINT. It prints ``READY <port>`` on stdout once the coordinator answered.
+
+The simulated coordinator takes fault commands on ``gateway/sim`` (JSON, for tests and demos):
+``{"out_of_range": "<agent>"}``, ``{"in_range": "<agent>"}``, ``{"unplug": true}``,
+``{"replug": true}``.
 """
 
 from __future__ import annotations
@@ -12,17 +16,17 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import queue
 import signal
 import sys
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from types import FrameType
 from typing import Any
 
 from hilswarm.agents import bus
-from hilswarm.agents.credentials import Credentials
+from hilswarm.agents.credentials import add_credentials_arguments, bus_access_from_args
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.link.url import link_scheme
 from hilswarm.agents.xbee.air import Air
@@ -114,6 +118,7 @@ def serve(
         sys.stderr.write(f"hilswarm gateway: {exc}\n")
         return 1
     coordinator: SimCoordinator | None = None
+    faults: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
     try:
         port_url = None
         if config.simulated:
@@ -129,6 +134,13 @@ def serve(
                 air=Air(seed=config.seed, default_loss=config.loss),
             ).start()
             port_url = coordinator.url
+        if coordinator is not None:
+            session.declare_subscriber(
+                keys.gateway("sim"), lambda sample: faults.put(sample.payload.to_bytes())
+            )
+            threading.Thread(
+                target=_apply_faults, args=(coordinator, plan, faults), daemon=True
+            ).start()
         with Gateway(config, keys, plan.robots, session, port_url=port_url) as gateway:
             sys.stdout.write(f"READY {gateway.port_url} {gateway.family.value}\n")
             sys.stdout.flush()
@@ -139,17 +151,38 @@ def serve(
         sys.stderr.write(f"hilswarm gateway: {exc}\n")
         return 1
     finally:
+        faults.put(None)
         if coordinator is not None:
             coordinator.stop()
         session.close()
+
+
+def _apply_faults(
+    coordinator: SimCoordinator, plan: GatewayPlan, commands: queue.SimpleQueue[bytes | None]
+) -> None:
+    """Apply the fault commands of ``gateway/sim`` (off the bus callback: unplugging blocks)."""
+    while (data := commands.get()) is not None:
+        try:
+            command = json.loads(data)
+            if "out_of_range" in command:
+                coordinator.set_out_of_range(plan.robots[command["out_of_range"]])
+            if "in_range" in command:
+                coordinator.set_out_of_range(plan.robots[command["in_range"]], False)
+            if command.get("unplug"):
+                coordinator.unplug()
+            if command.get("replug"):
+                coordinator.replug()
+        except (ValueError, KeyError, TypeError) as exc:
+            _log.warning("gateway/sim: command %r not understood: %s", data[:200], exc)
+        else:
+            _log.info("gateway/sim: applied %s", data[:200].decode(errors="replace"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m hilswarm.agents.xbee.gateway_process``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
-    parser.add_argument("--credentials", type=Path, help="the gateway's credentials file (0600)")
-    parser.add_argument("--run-id", default="", help="the run's id (without --credentials)")
+    add_credentials_arguments(parser)
     parser.add_argument("--plan", required=True, help="GatewayPlan as JSON")
     parser.add_argument("-v", "--verbose", action="count", default=0)
     args = parser.parse_args(argv)
@@ -164,14 +197,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, on_signal)
-    credentials = Credentials.read(args.credentials) if args.credentials else None
-    endpoints = args.connect or (list(credentials.endpoints) if credentials else [])
+    endpoints, run_id, security = bus_access_from_args(args)
     return serve(
-        GatewayPlan.from_json(args.plan),
-        endpoints,
-        stop,
-        run_id=credentials.run_id if credentials else args.run_id,
-        security=credentials.security() if credentials else None,
+        GatewayPlan.from_json(args.plan), endpoints, stop, run_id=run_id, security=security
     )
 
 

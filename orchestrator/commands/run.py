@@ -5,6 +5,7 @@ Example::
     hilswarm run graphs/lead_follow.toml
     hilswarm run graphs/lead_follow.toml --link leader=/dev/ttyUSB0 --mode realtime
     hilswarm run graphs/consensus_ring.toml --out out/ring.mcap --duration 5
+    hilswarm run graphs/lead_follow.toml --mode realtime --live      # watch it in Foxglove
 
 Every run has a bus of its own: the embedded router binds a free loopback port (printed, and
 listed by ``hilswarm ps``), every key carries a fresh run id, and every process authenticates
@@ -31,7 +32,7 @@ from types import FrameType
 
 from hilswarm.agents import bus
 from hilswarm.agents.errors import RecordingError
-from hilswarm.orchestrator.bus_access import GATEWAY
+from hilswarm.orchestrator.bus_access import GATEWAY, MOCAP, VIEWER
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
@@ -43,6 +44,7 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
+from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_registry import RunEntry, RunRecord
 from hilswarm.orchestrator.run_security import RunSecurity, is_loopback
@@ -113,6 +115,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ANSWER_TIMEOUT_S,
         metavar="SECONDS",
         help="lockstep: an agent silent this long on one tick is lost [s]",
+    )
+    parser.add_argument(
+        "--live",
+        nargs="?",
+        type=int,
+        const=0,
+        default=None,
+        metavar="PORT",
+        help="serve the run live to the Foxglove app (WebSocket on localhost; PORT default: "
+        "a free one, printed as a ws:// URL)",
     )
     parser.add_argument(
         "--remote-gateway",
@@ -198,7 +210,7 @@ def _run(
             experiment, run_id, record.folder, listen=listen, tls_names=args.tls_name
         )
     display = StatusDisplay(sys.stdout)
-    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
+    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns(), live_port=args.live)
     launcher = AgentLauncher(
         [], verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
     )
@@ -224,6 +236,7 @@ def _run(
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     summary: RunSummary | None = None
     error = ""
+    mocap = MocapRunner(experiment, [], run_id=run_id) if experiment.mocap is not None else None
     try:
         manager.open()
         endpoints = manager.endpoints
@@ -238,6 +251,13 @@ def _run(
             if security is not None:
                 gateway.credentials = security.folder / f"{GATEWAY}.cred"
             display.log(f"XBee gateway: {gateway.start()}")
+        if mocap is not None:
+            mocap.endpoints = launcher.endpoints
+            if security is not None:
+                mocap.credentials = security.folder / f"{MOCAP}.cred"
+                mocap.security = security.credentials(VIEWER, launcher.endpoints).security()
+            mocap.start()
+            mocap.wait_ready()
         launcher.start_all(
             [
                 agent_config_for(experiment, n, run_id=run_id)
@@ -259,6 +279,9 @@ def _run(
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
         record.entry.state = "running"
+        if recorder.live_url:
+            display.log("live view: open this in the Foxglove app (Open connection):")
+            display.log(recorder.live_url)
         summary = manager.run()
     except (
         ManagerError,
@@ -266,6 +289,7 @@ def _run(
         RecordingError,
         GatewayProcessError,
         bus.BusConnectionError,
+        MocapError,
     ) as exc:
         error = str(exc)
     finally:
@@ -274,6 +298,8 @@ def _run(
         launcher.stop()
         if gateway is not None:
             gateway.stop()
+        if mocap is not None:
+            mocap.stop()
         manager.close()
         if recorder.close() != 0 and not error:
             error = f"the recording {out} is incomplete (see the recorder's log above)"
