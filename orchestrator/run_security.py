@@ -224,18 +224,23 @@ class RunSecurity:
         )
 
     def write_credentials(
-        self, endpoints: Sequence[str], *, remote: Sequence[str] = ()
+        self,
+        endpoints: Sequence[str],
+        *,
+        remote: Sequence[str] = (),
+        remote_users: Sequence[str] = (),
     ) -> dict[str, Path]:
         """Write every principal's credentials file; returns agent name -> its file.
 
         Args:
             endpoints: the router's bound endpoints. Processes on this host get the loopback
-                ones; the agents in ``remote`` (other machines) the others (TLS).
+                ones; those on other machines the others (TLS).
             remote: names of agents that join from other machines.
+            remote_users: other principals that join from other machines (``gateway``).
         """
         local = [e for e in endpoints if is_loopback(e)] or list(endpoints)
         other = [e for e in endpoints if not is_loopback(e)] or list(endpoints)
-        remotes = {agent_user(name) for name in remote}
+        remotes = {agent_user(name) for name in remote} | set(remote_users)
         files = {
             user: self.credentials(user, other if user in remotes else local).write(
                 self.folder / f"{user}.cred"

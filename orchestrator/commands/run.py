@@ -242,7 +242,11 @@ def _run(
         endpoints = manager.endpoints
         launcher.endpoints = [e for e in endpoints if is_loopback(e)] or endpoints
         if security is not None:
-            launcher.credentials = security.write_credentials(endpoints, remote=args.remote)
+            launcher.credentials = security.write_credentials(
+                endpoints,
+                remote=args.remote,
+                remote_users=[GATEWAY] if args.remote_gateway else [],
+            )
         record.entry.endpoints = endpoints
         record.entry.state = "waiting"
         record.write()
