@@ -237,12 +237,13 @@ class InstanceManager:
                 zenoh.handlers.Callback(self._on_request, indirect=False),
             )
         )
-        entities.append(
-            session.declare_subscriber(
-                keys.gateway("*"),
-                zenoh.handlers.Callback(self._on_gateway, indirect=False),
+        for leaf in ("status", "stats"):  # explicit keys: see above
+            entities.append(
+                session.declare_subscriber(
+                    keys.gateway(leaf),
+                    zenoh.handlers.Callback(self._on_gateway, indirect=False),
+                )
             )
-        )
         entities.append(
             session.liveliness().declare_subscriber(
                 keys.all_alive,
