@@ -5,6 +5,7 @@ Example::
     hilswarm run graphs/lead_follow.toml
     hilswarm run graphs/lead_follow.toml --link leader=/dev/ttyUSB0 --mode realtime
     hilswarm run graphs/consensus_ring.toml --out out/ring.mcap --duration 5
+    hilswarm run graphs/lead_follow.toml --mode realtime --live      # watch it in Foxglove
 
 Ctrl-C (or ``hilswarm stop EXP`` from another terminal) brings every agent to safe mode, stops
 it, and closes the recording properly. Exit status: 0 completed or stopped on request, 1 the
@@ -85,6 +86,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="lockstep: an agent silent this long on one tick is lost [s]",
     )
     parser.add_argument(
+        "--live",
+        nargs="?",
+        type=int,
+        const=0,
+        default=None,
+        metavar="PORT",
+        help="serve the run live to the Foxglove app (WebSocket on localhost; PORT default: "
+        "a free one, printed as a ws:// URL)",
+    )
+    parser.add_argument(
         "--remote-gateway",
         action="store_true",
         help="do not start the XBee gateway here: it joins with `hilswarm gateway`",
@@ -130,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or default_output(experiment, datetime.datetime.now())
     endpoints = list(args.connect) or [bus.loopback_endpoint(args.port)]
     display = StatusDisplay(sys.stdout)
-    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
+    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns(), live_port=args.live)
     launcher = AgentLauncher(
         endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
     )
@@ -175,6 +186,9 @@ def run(args: argparse.Namespace) -> int:
         )
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
+        if recorder.live_url:
+            display.log("live view: open this in the Foxglove app (Open connection):")
+            display.log(recorder.live_url)
         summary = manager.run()
     except (
         ManagerError,
