@@ -77,3 +77,14 @@ def board_for_url(url: str, **options: Any) -> Board:
     kind = link_scheme(url)
     target = _SERIAL_FACTORY if kind == "serial" else _SCHEMES[kind]
     return _load(target)(url, **options)
+
+
+def simulated_link(url: str) -> bool:
+    """True when link ``url`` drives a simulated plant (``sim://``, ``simavr://``, or an XBee
+    link with ``sim=``): the plant then also gives the vehicle's pose (a SimulatedMocap).
+
+    Raises:
+        LinkUrlError: an unknown scheme (see :func:`link_scheme`).
+    """
+    scheme = link_scheme(url)
+    return scheme in ("sim", "simavr") or (scheme == "xbee" and "sim=" in url)
