@@ -8,6 +8,7 @@ bounded.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -56,16 +57,27 @@ def child_pids(pid: int) -> list[int]:
 
 
 def agent_pids(pid: int) -> list[int]:
-    """Children of ``pid`` that are agent processes (not the recorder process)."""
+    """Agent processes below ``pid``: its children, or the children of its agent fork server."""
     agents = []
     for child in child_pids(pid):
         try:
             command = Path(f"/proc/{child}/cmdline").read_bytes()
         except OSError:
             continue
-        if b"hilswarm.agents.agent" in command:
+        if b"hilswarm.agents.spawner" in command:
+            agents += agent_pids(child)
+        elif b"hilswarm.agents.agent" in command:
             agents.append(child)
     return agents
+
+
+def agent_name_of(pid: int) -> str:
+    """The agent name of agent process ``pid``, from its command line or process title."""
+    words = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").split()
+    if b"--name" in words:  # a forked agent's title
+        return words[words.index(b"--name") + 1].decode()
+    config = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    return json.loads(config[config.index(b"--config") + 1])["name"]
 
 
 def pid_alive(pid: int) -> bool:
