@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, ClassVar
@@ -85,6 +85,9 @@ class TickInput:
         u: ``u_k``, the input the vehicle applied (read-only array).
         y: ``y_k``, the output the vehicle sensed (read-only array).
         neighbours: neighbours' ``y_k`` by agent name; ``None`` means no data this tick.
+        neighbour_poses: for a controller with ``uses_neighbour_poses``: each neighbour's
+            newest mocap pose ``[x, y, z (m), roll, pitch, yaw (rad)]`` (world frame) by agent
+            name, ``None`` while its tracking is lost; empty otherwise.
     """
 
     k: int
@@ -93,6 +96,9 @@ class TickInput:
     u: np.ndarray
     y: np.ndarray
     neighbours: Mapping[str, np.ndarray | None] = field(
+        default_factory=lambda: MappingProxyType({})
+    )
+    neighbour_poses: Mapping[str, np.ndarray | None] = field(
         default_factory=lambda: MappingProxyType({})
     )
 
@@ -120,6 +126,7 @@ def _tick_input(
     fields["u"] = u
     fields["y"] = y
     fields["neighbours"] = neighbours
+    fields["neighbour_poses"] = _NO_NEIGHBOURS
     return tick
 
 
@@ -139,6 +146,14 @@ class Controller(ABC):
     n_states: ClassVar[int] = 0
     #: Every accepted parameter and its default (``None``: required or computed).
     default_params: ClassVar[Mapping[str, Any]] = {}
+    #: Names of the entries of ``x_hat`` (recorded as the fields of ``/<agent>/x_hat``);
+    #: empty, or not one per entry: ``x0``, ``x1``, ... (see :meth:`state_names_for`).
+    state_names: ClassVar[tuple[str, ...]] = ()
+    #: Unit of each named state entry (``{"integral_m_s": "m s"}``); absent: no unit.
+    state_units: ClassVar[Mapping[str, str]] = {}
+    #: With a ``[mocap]`` system: the agent also receives its graph neighbours' mocap poses
+    #: (``TickInput.neighbour_poses``), not only their outputs.
+    uses_neighbour_poses: ClassVar[bool] = False
 
     @property
     def name(self) -> str:
@@ -168,6 +183,24 @@ class Controller(ABC):
     def initial_state(self, params: Mapping[str, Any]) -> np.ndarray:
         """``x_hat_0`` when the ControlModel is given none: zeros of :attr:`n_states`."""
         return np.zeros(self.n_states)
+
+    def state_names_for(self, size: int) -> tuple[str, ...]:
+        """Names of the ``size`` entries of ``x_hat``: :attr:`state_names`, else ``x0``..."""
+        names = tuple(self.state_names)
+        return names if len(names) == size else tuple(f"x{i}" for i in range(size))
+
+    def params_changed(
+        self, old: Mapping[str, Any], new: Mapping[str, Any], x_hat: np.ndarray
+    ) -> np.ndarray:
+        """``x_hat`` to continue with after the parameters changed at run time (``set``).
+
+        Called by :meth:`ControlModel.replace_params` with the validated parameters before and
+        after the change; the default keeps the state. A controller whose state must restart
+        on some change (a new waypoint list) returns the restarted state here, so no marker of
+        the parameters has to live in ``x_hat``.
+        """
+        del old, new
+        return x_hat
 
     @abstractmethod
     def step(
@@ -306,6 +339,9 @@ class ControlModel:
         self._x0 = None if x0 is None else np.array(x0, dtype=np.float64).reshape(-1)
         self._k = 0
         self._x_hat = self._initial_x_hat()
+        #: Gives the neighbours' mocap poses for ``TickInput.neighbour_poses`` (set by the
+        #: agent when the controller ``uses_neighbour_poses``), or ``None``.
+        self.neighbour_poses: Callable[[], Mapping[str, np.ndarray | None]] | None = None
         names = (
             tuple(input_names)
             if input_names is not None
@@ -334,7 +370,7 @@ class ControlModel:
         size = self._x_hat.shape[0]
         if size == 0 or self._x_channel is not None:
             return
-        self._x_channel = self.history.add_channel("x_hat", tuple(f"x{i}" for i in range(size)))
+        self._x_channel = self.history.add_channel("x_hat", self.controller.state_names_for(size))
 
     @property
     def k(self) -> int:
@@ -368,11 +404,15 @@ class ControlModel:
         """Replace all parameters (missing ones take the controller's defaults)."""
         given = dict(params)
         validated = self.controller.validate_params(given)
+        old = self._params
         self._given_params, self._params = given, validated
         self._params_view = MappingProxyType(validated)
         if reset_state:
             self._x_hat = self._initial_x_hat()
             self._ensure_x_channel()
+        else:
+            x_hat = self.controller.params_changed(old, validated, self._x_hat.copy())
+            self._x_hat = np.array(x_hat, dtype=np.float64).reshape(self._x_hat.shape)
 
     def reset(self, x0: ArrayLike | None = None) -> None:
         """Restart at tick 0 with ``x0`` (or the initial condition); history is cleared."""
@@ -430,6 +470,8 @@ class ControlModel:
         tick = _tick_input(
             self._k, tick_time, self.dt, u=_frozen(u), y=_frozen(y), neighbours=frozen_neighbours
         )
+        if self.neighbour_poses is not None:
+            tick.__dict__["neighbour_poses"] = MappingProxyType(dict(self.neighbour_poses()))
         n_states = self._x_hat.shape[0]
         result = controller.step(tick, self._x_hat.copy(), self._params_view)
         if not isinstance(result, tuple) or len(result) != 2:

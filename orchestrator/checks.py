@@ -49,6 +49,7 @@ from hilswarm.agents.registry import (
 from hilswarm.orchestrator.experiment import AgentSpec, Experiment, parse_experiment
 from hilswarm.orchestrator.graph_facts import GraphFacts, graph_facts
 from hilswarm.orchestrator.problems import ExperimentError, Problem
+from hilswarm.orchestrator.xbee_check import check_gateway
 
 logger = logging.getLogger(__name__)
 
@@ -106,12 +107,15 @@ def check_experiment(experiment: Experiment, report: CheckReport | None = None) 
     _check_settings(experiment, report)
     _check_graph(experiment, report.facts, report)
     _check_shared_links(experiment, report)
+    _check_mocap_bodies(experiment, report)
     built = {spec.name: _AgentCheck(experiment, spec, report) for spec in experiment.agents}
     for check in built.values():
         check.build()
     output_sizes = {name: check.n_outputs for name, check in built.items()}
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
+    vehicles = {name: check.vehicle for name, check in built.items()}
+    check_gateway(experiment, vehicles, report.problems, report.warnings)
     return report
 
 
@@ -139,6 +143,32 @@ def _check_settings(experiment: Experiment, report: CheckReport) -> None:
                 f"{experiment.rate_hz:g} Hz) make a very large recording",
             )
         )
+
+
+def _check_mocap_bodies(experiment: Experiment, report: CheckReport) -> None:
+    """A real mocap system must see every agent's body now (``sim``: the agents bring them)."""
+    mocap = experiment.mocap
+    if mocap is None or mocap.system == "sim":
+        return
+    from hilswarm.agents.mocap.probe import probe  # noqa: PLC0415 - only with a real system
+
+    try:
+        seen = probe(mocap, duration_s=min(1.0, 20.0 / mocap.rate_hz + 0.2))
+    except HilswarmError as exc:
+        report.problems.append(Problem(experiment.path, "mocap.host", str(exc)))
+        return
+    visible = seen.visible()
+    for spec in experiment.agents:
+        if spec.body not in visible:
+            key = f"agents.{spec.name}.mocap_body"
+            report.problems.append(
+                Problem(
+                    experiment.path,
+                    key,
+                    f"body {spec.body!r} is not visible to {mocap.system} at {mocap.host}; "
+                    f"it sees: {', '.join(visible) or 'no bodies'}",
+                )
+            )
 
 
 def _check_graph(experiment: Experiment, facts: GraphFacts, report: CheckReport) -> None:
@@ -211,6 +241,7 @@ class _AgentCheck:
             self.problem("vehicle", str(exc))
             vehicle_cls = None
         link_kind = self._check_link(vehicle_cls)
+        self._check_pose(vehicle_cls, link_kind)
         calibration = self._load_calibration()
         if vehicle_cls is None or calibration is _FAILED:
             return
@@ -268,6 +299,18 @@ class _AgentCheck:
                 f"vehicle {spec.vehicle!r} needs no board; link {spec.link!r} is not used",
             )
         return kind
+
+    def _check_pose(self, vehicle_cls: Any, link_kind: str | None) -> None:
+        """A vehicle whose outputs come from motion capture needs a pose from somewhere."""
+        if vehicle_cls is None or not getattr(vehicle_cls, "needs_pose", False):
+            return
+        if self.experiment.mocap is None and link_kind not in ("sim", "simavr"):
+            self.problem(
+                "link",
+                f"agent {self.spec.name!r}: vehicle {self.spec.vehicle!r} needs its pose from "
+                f"motion capture, link {self.spec.link!r} gives none and the experiment has no "
+                '[mocap] section; add one (e.g. [mocap] system = "vicon", host = "...")',
+            )
 
     def _load_calibration(self) -> Any:
         path = self.spec.calibration

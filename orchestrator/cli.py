@@ -27,9 +27,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stop": ("stop", "bring every agent of a running experiment to safe mode and stop"),
     "plot": ("plot", "write PNG plots of a recording"),
     "recover": ("recover", "rewrite an MCAP file whose writer was killed"),
+    "replay": (
+        "replay",
+        "replay a recording through its controllers (or changed ones) and report divergence",
+    ),
     "agent": ("agent", "start one agent process that joins a running experiment"),
+    "gateway": ("gateway", "run the XBee gateway of an experiment (joins a running bus)"),
+    "xbee": ("xbee", "XBee radios: node discovery (scan) and configuration (setup)"),
     "new": ("new", "write a skeleton vehicle or device with its test and experiment file"),
     "calibrate": ("calibrate", "fit and plot a calibration table from measured pairs"),
+    "mocap": ("mocap", "list the bodies a mocap system sees, with rate and position"),
 }
 
 

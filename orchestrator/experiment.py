@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from hilswarm.agents.mocap.config import MocapSettings, parse_mocap
 from hilswarm.orchestrator.graph_io import read_graph_file, validate_matrix
 from hilswarm.orchestrator.problems import ExperimentError, Problem
 
@@ -88,8 +89,16 @@ AGENT_KEYS: tuple[str, ...] = (
     "pinout",
     "initial_state",
     "calibration",
+    "mocap_body",
 )
-TOP_LEVEL_KEYS: tuple[str, ...] = ("experiment", "graph", "defaults", "agents")
+TOP_LEVEL_KEYS: tuple[str, ...] = (
+    "experiment",
+    "graph",
+    "defaults",
+    "agents",
+    "gateway",
+    "mocap",
+)
 #: Keys :func:`load_experiment` accepts in ``overrides``.
 OVERRIDE_KEYS: tuple[str, ...] = (
     "mode",
@@ -120,6 +129,7 @@ class AgentSpec:
         initial_state: initial state of a simulated plant (units of that plant's state).
         calibration: calibration file (resolved against the experiment file's folder) or
             ``None``.
+        mocap_body: the agent's rigid body in the mocap system (``None``: the agent's name).
     """
 
     name: str
@@ -131,6 +141,12 @@ class AgentSpec:
     pinout: dict[str, dict[str, int | str]] = field(default_factory=dict)
     initial_state: tuple[float, ...] = ()
     calibration: Path | None = None
+    mocap_body: str | None = None
+
+    @property
+    def body(self) -> str:
+        """The agent's rigid body name in the mocap system."""
+        return self.mocap_body or self.name
 
 
 @dataclass(frozen=True, eq=False)
@@ -175,6 +191,8 @@ class Experiment:
     graph_file: Path | None = None
     on_agent_safe: Literal["continue", "stop"] = "continue"
     lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
+    gateway: Any = None
+    mocap: MocapSettings | None = None
 
     @property
     def dt(self) -> float:
@@ -309,6 +327,7 @@ class _Parser:
             if self._agent_table_ok(name, table)
         }
         graph = self._graph(self._table(self.data, "graph", required=True))
+        mocap = self._mocap(settings, specs)
         links = overrides.get("links") or {}
         if isinstance(links, Mapping):
             for name, url in links.items():
@@ -326,6 +345,7 @@ class _Parser:
             return None
         names, adjacency, graph_file = graph
         self._match_names(names, agent_tables)
+        gateway = self._gateway(self.data.get("gateway"))
         if self.problems:
             return None
         adjacency.setflags(write=False)
@@ -344,7 +364,55 @@ class _Parser:
             graph_file=graph_file,
             on_agent_safe=settings["on_agent_safe"],
             lockstep_window=settings["lockstep_window"],
+            gateway=gateway,
+            mocap=mocap,
         )
+
+    def _gateway(self, table: Any) -> Any:
+        """``[gateway]`` as a GatewayConfig (``None`` when absent)."""
+        if table is None:
+            return None
+        from hilswarm.agents.xbee.config import (  # noqa: PLC0415 - only files with [gateway]
+            GatewayConfig,
+            GatewayConfigError,
+        )
+
+        if not isinstance(table, dict):
+            self.problem("gateway", "must be a table: [gateway]")
+            return None
+        try:
+            return GatewayConfig.from_table(table)
+        except GatewayConfigError as exc:
+            self.problem("gateway", str(exc))
+            return None
+
+    # -- [mocap] ---------------------------------------------------------------------------
+
+    def _mocap(
+        self, settings: Mapping[str, Any], specs: Mapping[str, AgentSpec]
+    ) -> MocapSettings | None:
+        if "mocap" not in self.data:
+            for name, spec in specs.items():
+                if spec.mocap_body is not None:
+                    self.problem(f"agents.{name}.mocap_body", "given but there is no [mocap]")
+            return None
+        mocap, problems = parse_mocap(self.data["mocap"])
+        for key, message in problems:
+            self.problem(key, message)
+        if mocap is not None and settings.get("mode") == "lockstep":
+            self.problem(
+                "experiment.mode",
+                'a [mocap] system runs on the wall clock; use mode = "realtime"',
+            )
+        bodies: dict[str, str] = {}
+        for name, spec in specs.items():
+            other = bodies.setdefault(spec.body, name)
+            if other != name:
+                self.problem(
+                    f"agents.{name}.mocap_body",
+                    f"body {spec.body!r} is already agent {other!r}'s",
+                )
+        return mocap
 
     # -- [experiment] ------------------------------------------------------------------------
 
@@ -595,6 +663,12 @@ class _Parser:
         vehicle_params = self._mapping(merged.get("vehicle_params", {}), f"{key}.vehicle_params")
         pinout = self._pinout(merged.get("pinout", {}), f"{key}.pinout")
         initial_state = self._vector(merged.get("initial_state", []), f"{key}.initial_state")
+        body = None
+        if merged.get("mocap_body") is not None:
+            body = self._string(merged["mocap_body"], f"{key}.mocap_body", required=True)
+            if body is not None and not NAME_PATTERN.match(body):
+                self.problem(f"{key}.mocap_body", f"{body!r}: use letters, digits, '_', '-'")
+                body = None
         calibration = None
         if merged.get("calibration") is not None:
             text = self._string(merged["calibration"], f"{key}.calibration", required=True)
@@ -609,6 +683,7 @@ class _Parser:
             pinout=pinout,
             initial_state=initial_state,
             calibration=calibration,
+            mocap_body=body,
         )
 
     def _string(self, value: Any, key: str, *, required: bool) -> str | None:

@@ -56,18 +56,25 @@ def child_pids(pid: int) -> list[int]:
     return children
 
 
-def agent_pids(pid: int) -> list[int]:
-    """Agent processes below ``pid``: its children, or the children of its agent fork server."""
-    agents = []
+def children_running(pid: int, module: bytes) -> list[int]:
+    """Children of ``pid`` whose command line contains ``module`` (bytes)."""
+    found = []
     for child in child_pids(pid):
         try:
             command = Path(f"/proc/{child}/cmdline").read_bytes()
         except OSError:
             continue
-        if b"hilswarm.agents.spawner" in command:
-            agents += agent_pids(child)
-        elif b"hilswarm.agents.agent" in command:
-            agents.append(child)
+        if module in command:
+            found.append(child)
+    return found
+
+
+def agent_pids(pid: int) -> list[int]:
+    """Agent processes below ``pid``: its children, or the children of its agent fork server."""
+    servers = children_running(pid, b"hilswarm.agents.spawner")
+    agents = [c for c in children_running(pid, b"hilswarm.agents.agent") if c not in servers]
+    for server in servers:
+        agents += children_running(server, b"hilswarm.agents.agent")
     return agents
 
 

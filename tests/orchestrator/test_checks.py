@@ -168,7 +168,14 @@ def test_link_override_is_checked_deeply(capsys: pytest.CaptureFixture[str]) -> 
     path = GRAPHS / "lead_follow.toml"
     assert main(["check", str(path), "--link", "leader=gopher://x"]) == 2
     assert f"{path}:agents.leader.link: link URL 'gopher://x'" in capsys.readouterr().err
-    assert main(["check", str(path), "--link", "leader=/dev/ttyUSB0"]) == 0
+    # A real board gives no pose and lead_follow.toml has no [mocap]: the leader cannot run.
+    assert main(["check", str(path), "--link", "leader=/dev/ttyUSB0"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:agents.leader.link: agent 'leader': vehicle 'frisbee' needs its pose" in err
+    assert "[mocap]" in err
+    # With a mocap system the same override is fine (its bodies come from the simulator).
+    mocap = GRAPHS / "lead_follow_mocap.toml"
+    assert main(["check", str(mocap), "--link", "leader=/dev/ttyUSB0"]) == 0
 
 
 @pytest.mark.parametrize(
@@ -178,6 +185,7 @@ def test_link_override_is_checked_deeply(capsys: pytest.CaptureFixture[str]) -> 
         "lead_follow.toml",
         "consensus_ring.toml",
         "consensus_ring_file.toml",
+        "lead_follow_mocap.toml",
     ],
 )
 def test_example_files_are_valid(name: str, capsys: pytest.CaptureFixture[str]) -> None:
