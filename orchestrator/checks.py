@@ -39,7 +39,7 @@ from hilswarm.agents.errors import (
     PinError,
     VehicleDefinitionError,
 )
-from hilswarm.agents.link.url import link_is_simulated, link_scheme
+from hilswarm.agents.link.url import is_simulated, link_scheme
 from hilswarm.agents.registry import (
     RegistryError,
     add_search_path,
@@ -241,7 +241,7 @@ class _AgentCheck:
             self.problem("vehicle", str(exc))
             vehicle_cls = None
         link_kind = self._check_link(vehicle_cls)
-        self._check_pose(vehicle_cls, link_kind is not None and link_is_simulated(spec.link))
+        self._check_pose(vehicle_cls, link_kind)
         calibration = self._load_calibration()
         if vehicle_cls is None or calibration is _FAILED:
             return
@@ -300,11 +300,14 @@ class _AgentCheck:
             )
         return kind
 
-    def _check_pose(self, vehicle_cls: Any, simulated_link: bool) -> None:
+    def _check_pose(self, vehicle_cls: Any, link_kind: str | None) -> None:
         """A vehicle whose outputs come from motion capture needs a pose from somewhere."""
         if vehicle_cls is None or not getattr(vehicle_cls, "needs_pose", False):
             return
-        if self.experiment.mocap is None and not simulated_link:
+        simulated = link_kind in ("sim", "simavr") or (
+            link_kind == "xbee" and self.spec.link is not None and is_simulated(self.spec.link)
+        )
+        if self.experiment.mocap is None and not simulated:
             self.problem(
                 "link",
                 f"agent {self.spec.name!r}: vehicle {self.spec.vehicle!r} needs its pose from "

@@ -18,7 +18,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from typing import Any
-from urllib.parse import parse_qs, urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 from hilswarm.agents.errors import LinkUrlError
 from hilswarm.agents.link.board import Board
@@ -61,18 +61,14 @@ def link_scheme(url: str) -> str:
     raise LinkUrlError(f"link URL {url!r}: unknown scheme {scheme!r}; known schemes: {known}")
 
 
-def link_is_simulated(url: str) -> bool:
-    """True when ``url``'s board is simulated with a plant behind it (``sim://``,
-    ``simavr://``, or ``xbee://...?sim=...``, a simulated robot behind a simulated radio):
-    such a link also gives the vehicle its pose (simulated motion capture of the plant).
-
-    Raises:
-        LinkUrlError: as :func:`link_scheme`.
-    """
-    scheme = link_scheme(url)
-    return scheme in ("sim", "simavr") or (
-        scheme == "xbee" and "sim" in parse_qs(urlsplit(url).query)
-    )
+def is_simulated(url: str) -> bool:
+    """True when ``url``'s board is simulated with the vehicle's simulated hardware as plant:
+    ``sim://``, ``simavr://``, or ``xbee://...?sim=...`` (a simulated robot behind a simulated
+    radio). Raises :class:`LinkUrlError` like :func:`link_scheme`."""
+    kind = link_scheme(url)
+    if kind == "xbee":
+        return "sim" in dict(parse_qsl(urlsplit(url).query))
+    return kind in ("sim", "simavr")
 
 
 def _load(target: str) -> BoardFactory:
