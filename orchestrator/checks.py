@@ -43,17 +43,28 @@ from hilswarm.agents.link.url import link_scheme
 from hilswarm.agents.registry import (
     RegistryError,
     add_search_path,
+    class_path,
     resolve_controller,
     resolve_vehicle,
 )
-from hilswarm.orchestrator.experiment import AgentSpec, Experiment, parse_experiment
+from hilswarm.orchestrator.class_inspect import static_class_problem
+from hilswarm.orchestrator.experiment import (
+    DEFAULT_MAX_AGENTS,
+    AgentSpec,
+    Experiment,
+    ExperimentParts,
+    load_parts,
+)
 from hilswarm.orchestrator.graph_facts import GraphFacts, graph_facts
 from hilswarm.orchestrator.problems import ExperimentError, Problem
+from hilswarm.orchestrator.schema import ExperimentSection
 
 logger = logging.getLogger(__name__)
 
 #: Link kinds that one process at a time can own (so two agents cannot share them).
 EXCLUSIVE_LINK_KINDS = ("serial", "xbee")
+#: Link kinds whose simulated board also simulates the motion capture (a pose source).
+POSE_LINK_KINDS = ("sim", "simavr")
 #: Runs longer than this many ticks are reported as a warning (recording size, run time).
 MANY_TICKS = 5_000_000
 
@@ -88,61 +99,69 @@ class CheckReport:
         return self.experiment
 
 
-def check_file(path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> CheckReport:
-    """Load ``path`` (with ``overrides``, as :func:`load_experiment`) and run every check."""
-    experiment, problems = parse_experiment(path, overrides=overrides)
-    report = CheckReport(Path(path), experiment, list(problems))
-    if experiment is not None:
-        check_experiment(experiment, report)
+def check_file(
+    path: str | Path,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    max_agents: int = DEFAULT_MAX_AGENTS,
+) -> CheckReport:
+    """Load ``path`` (with ``overrides``, as :func:`load_experiment`) and run every check.
+
+    The agents whose own tables are valid are checked even when another part of the file is
+    broken, so every problem shows in one pass.
+    """
+    parts = load_parts(path, overrides=overrides, max_agents=max_agents)
+    report = CheckReport(Path(path), parts.experiment, list(parts.problems))
+    check_parts(parts, report)
     return report
 
 
-def check_experiment(experiment: Experiment, report: CheckReport | None = None) -> CheckReport:
-    """Run the deep checks on a loaded experiment, adding to ``report`` (or a new one)."""
-    report = report or CheckReport(experiment.path, experiment)
-    report.experiment = experiment
-    add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
-    report.facts = graph_facts(experiment.agent_names, experiment.adjacency)
-    _check_settings(experiment, report)
-    _check_graph(experiment, report.facts, report)
-    _check_shared_links(experiment, report)
-    built = {spec.name: _AgentCheck(experiment, spec, report) for spec in experiment.agents}
+def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
+    """The deep checks of everything in ``parts`` that loaded (see :func:`check_file`)."""
+    add_search_path(parts.path.parent)  # user "module:Class" names beside the file
+    if parts.graph is not None:
+        names, adjacency, _ = parts.graph
+        report.facts = graph_facts(names, adjacency)
+        _check_graph(parts.path, report.facts, report)
+    if parts.settings is not None:
+        _check_settings(parts.path, parts.settings, report)
+    _check_shared_links(parts, report)
+    built = {name: _AgentCheck(parts, spec, report) for name, spec in parts.agents.items()}
     for check in built.values():
         check.build()
     output_sizes = {name: check.n_outputs for name, check in built.items()}
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
-    return report
 
 
 # -- experiment-wide checks ---------------------------------------------------------------------
 
 
-def _check_settings(experiment: Experiment, report: CheckReport) -> None:
-    path = experiment.path
-    if experiment.watchdog_s is not None and experiment.watchdog_s <= experiment.dt:
+def _check_settings(path: Path, settings: ExperimentSection, report: CheckReport) -> None:
+    dt = 1.0 / settings.rate_hz
+    if settings.watchdog_s is not None and settings.watchdog_s <= dt:
         report.problems.append(
             Problem(
                 path,
                 "experiment.watchdog_s",
-                f"{experiment.watchdog_s:g} s is not longer than the control period "
-                f"{experiment.dt:g} s ({experiment.rate_hz:g} Hz): every board would go to safe "
+                f"{settings.watchdog_s:g} s is not longer than the control period "
+                f"{dt:g} s ({settings.rate_hz:g} Hz): every board would go to safe "
                 "mode between two ticks; make it a few periods long",
             )
         )
-    if experiment.n_ticks > MANY_TICKS:
+    n_ticks = max(1, round(settings.duration_s * settings.rate_hz))
+    if n_ticks > MANY_TICKS:
         report.warnings.append(
             Problem(
                 path,
                 "experiment.duration_s",
-                f"{experiment.n_ticks} ticks ({experiment.duration_s:g} s at "
-                f"{experiment.rate_hz:g} Hz) make a very large recording",
+                f"{n_ticks} ticks ({settings.duration_s:g} s at "
+                f"{settings.rate_hz:g} Hz) make a very large recording",
             )
         )
 
 
-def _check_graph(experiment: Experiment, facts: GraphFacts, report: CheckReport) -> None:
-    path = experiment.path
+def _check_graph(path: Path, facts: GraphFacts, report: CheckReport) -> None:
     if len(facts.names) > 1 and not facts.weakly_connected:
         groups = "; ".join(", ".join(component) for component in facts.components)
         report.warnings.append(
@@ -155,9 +174,9 @@ def _check_graph(experiment: Experiment, facts: GraphFacts, report: CheckReport)
             )
 
 
-def _check_shared_links(experiment: Experiment, report: CheckReport) -> None:
+def _check_shared_links(parts: ExperimentParts, report: CheckReport) -> None:
     owners: dict[str, str] = {}
-    for spec in experiment.agents:
+    for spec in parts.agents.values():
         if spec.link is None:
             continue
         try:
@@ -170,7 +189,7 @@ def _check_shared_links(experiment: Experiment, report: CheckReport) -> None:
         if key in owners:
             report.problems.append(
                 Problem(
-                    experiment.path,
+                    parts.path,
                     f"agents.{spec.name}.link",
                     f"{key!r} is already the link of agent {owners[key]!r}; a serial port or "
                     "XBee address belongs to one agent",
@@ -186,8 +205,9 @@ def _check_shared_links(experiment: Experiment, report: CheckReport) -> None:
 class _AgentCheck:
     """Checks of one agent; :meth:`build` first, then :meth:`check_controller`."""
 
-    def __init__(self, experiment: Experiment, spec: AgentSpec, report: CheckReport) -> None:
-        self.experiment = experiment
+    def __init__(self, parts: ExperimentParts, spec: AgentSpec, report: CheckReport) -> None:
+        self.parts = parts
+        self.dt = parts.dt
         self.spec = spec
         self.report = report
         self.key = f"agents.{spec.name}"
@@ -196,25 +216,21 @@ class _AgentCheck:
         self.n_outputs: int | None = None
 
     def problem(self, key: str, message: str) -> None:
-        self.report.problems.append(Problem(self.experiment.path, f"{self.key}.{key}", message))
+        self.report.problems.append(Problem(self.parts.path, f"{self.key}.{key}", message))
 
     def warning(self, key: str, message: str) -> None:
-        self.report.warnings.append(Problem(self.experiment.path, f"{self.key}.{key}", message))
+        self.report.warnings.append(Problem(self.parts.path, f"{self.key}.{key}", message))
 
     # -- vehicle, link, calibration -----------------------------------------------------------
 
     def build(self) -> None:
         spec = self.spec
-        try:
-            vehicle_cls = resolve_vehicle(spec.vehicle)
-        except RegistryError as exc:
-            self.problem("vehicle", str(exc))
-            vehicle_cls = None
+        vehicle_cls = _resolve_class(self, "vehicle", spec.vehicle, resolve_vehicle)
         link_kind = self._check_link(vehicle_cls)
         calibration = self._load_calibration()
-        if vehicle_cls is None or calibration is _FAILED:
+        if vehicle_cls is None or calibration is _FAILED or self.dt is None:
             return
-        kwargs: dict[str, Any] = {"name": spec.name, "dt": self.experiment.dt}
+        kwargs: dict[str, Any] = {"name": spec.name, "dt": self.dt}
         if spec.pinout:
             kwargs["pinout"] = spec.pinout
         if spec.vehicle_params:
@@ -267,6 +283,16 @@ class _AgentCheck:
                 "link",
                 f"vehicle {spec.vehicle!r} needs no board; link {spec.link!r} is not used",
             )
+        needs_pose = vehicle_cls is not None and getattr(vehicle_cls, "needs_pose", False)
+        if needs_pose and kind not in POSE_LINK_KINDS and self.parts.mocap is None:
+            self.problem(
+                "link",
+                f"agent {spec.name!r}: vehicle {spec.vehicle!r} needs a pose from motion "
+                f"capture, but link {spec.link!r} gives none (only simulated boards, "
+                f"{', '.join(k + '://' for k in POSE_LINK_KINDS)}, simulate one) and the "
+                'experiment has no [mocap] table; add [mocap] with system = "vicon", '
+                '"optitrack", "qualisys", "vrpn" or "sim"',
+            )
         return kind
 
     def _load_calibration(self) -> Any:
@@ -302,18 +328,18 @@ class _AgentCheck:
             return
         if link_kind == "sim" and spec.initial_state:
             try:
-                vehicle.simulated_hardware(initial_state=spec.initial_state, dt=self.experiment.dt)
+                vehicle.simulated_hardware(initial_state=spec.initial_state, dt=self.dt)
             except (HilswarmError, ValueError, TypeError) as exc:
                 self.problem("initial_state", f"the simulated hardware rejects it: {exc}")
 
     # -- controller ---------------------------------------------------------------------------
 
-    def check_controller(self, output_sizes: Mapping[str, int | None], facts: GraphFacts) -> None:
+    def check_controller(
+        self, output_sizes: Mapping[str, int | None], facts: GraphFacts | None
+    ) -> None:
         spec = self.spec
-        try:
-            controller_cls = resolve_controller(spec.controller)
-        except RegistryError as exc:
-            self.problem("controller", str(exc))
+        controller_cls = _resolve_class(self, "controller", spec.controller, resolve_controller)
+        if controller_cls is None:
             return
         try:
             controller = controller_cls()
@@ -325,9 +351,12 @@ class _AgentCheck:
         except (ControllerError, ValueError, TypeError) as exc:
             self.problem("params", str(exc))
             return
-        neighbours = self.experiment.neighbours(spec.name)
+        neighbours = self.parts.neighbours(spec.name)
+        if neighbours is None or self.dt is None:
+            return  # the graph or [experiment] is broken (reported): nothing more to compare
         self._check_leader(params, neighbours)
-        self._check_consensus_gain(controller, params, facts)
+        if facts is not None:
+            self._check_consensus_gain(controller, params, facts, neighbours)
         if self.n_inputs is None:
             return
         self._dry_step(controller, params, neighbours, output_sizes)
@@ -336,13 +365,13 @@ class _AgentCheck:
         leader = params.get("leader")
         if not isinstance(leader, str):
             return
-        names = self.experiment.agent_names
+        names = self.parts.agent_names or ()
         if leader not in names:
             self.problem("params.leader", f"no agent named {leader!r}; agents: {', '.join(names)}")
         elif leader == self.spec.name:
             self.problem("params.leader", "an agent cannot follow itself")
         elif leader not in neighbours:
-            i, j = self.experiment.index(self.spec.name), self.experiment.index(leader)
+            i, j = names.index(self.spec.name), names.index(leader)
             self.problem(
                 "params.leader",
                 f"{self.spec.name!r} does not hear its leader {leader!r} through the graph: "
@@ -351,19 +380,24 @@ class _AgentCheck:
             )
 
     def _check_consensus_gain(
-        self, controller: Any, params: Mapping[str, Any], facts: GraphFacts
+        self,
+        controller: Any,
+        params: Mapping[str, Any],
+        facts: GraphFacts,
+        neighbours: tuple[str, ...],
     ) -> None:
         from hilswarm.agents.controllers.consensus import LinearConsensus  # noqa: PLC0415
 
         if not isinstance(controller, LinearConsensus):
             return
         weights = params["weights"]
-        degree = sum(weights.get(name, 1.0) for name in self.experiment.neighbours(self.spec.name))
-        product = params["gain"] * self.experiment.dt * degree
+        dt = self.dt or 0.0
+        degree = sum(weights.get(name, 1.0) for name in neighbours)
+        product = params["gain"] * dt * degree
         if product >= 1.0:
             self.warning(
                 "params.gain",
-                f"gain * dt * in-degree = {params['gain']:g} * {self.experiment.dt:g} * "
+                f"gain * dt * in-degree = {params['gain']:g} * {dt:g} * "
                 f"{degree:g} = {product:g} >= 1: the Euler-stepped consensus may oscillate or "
                 "diverge; lower the gain or raise rate_hz",
             )
@@ -390,7 +424,7 @@ class _AgentCheck:
         try:
             model = ControlModel(
                 controller,
-                dt=self.experiment.dt,
+                dt=self.dt,
                 n_inputs=self.n_inputs or 0,
                 n_outputs=self.n_outputs,
                 params=params,
@@ -416,6 +450,22 @@ def _vehicle_error_key(exc: BaseException) -> str:
         if key in text:
             return "vehicle" if key == "limits" else key
     return "vehicle_params"
+
+
+def _resolve_class(check: _AgentCheck, kind: str, name: str, resolve: Any) -> Any:
+    """The class ``name`` names, or ``None`` with a problem at the agent's ``kind`` key.
+
+    A module outside hilswarm is first inspected without running it (:mod:`.class_inspect`);
+    the registry then imports it and checks that the class subclasses Vehicle / Controller.
+    """
+    try:
+        problem = static_class_problem(kind, name, class_path(kind, name))
+        if problem is None:
+            return resolve(name)
+    except RegistryError as exc:
+        problem = str(exc)
+    check.problem(kind, problem)
+    return None
 
 
 #: Marker: the calibration could not be loaded (a problem was reported).

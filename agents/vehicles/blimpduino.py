@@ -96,6 +96,8 @@ class Blimpduino(Vehicle):
     input_names: ClassVar[tuple[str, ...]] = ("thrust_left", "thrust_right", "thrust_angle")
     output_names: ClassVar[tuple[str, ...]] = ("x", "y", "z", "yaw")
     profile: ClassVar[str] = "fio"
+    #: Outputs come from motion capture (pose_source): a real board needs [mocap].
+    needs_pose: ClassVar[bool] = True
     default_pinout: ClassVar[Mapping[str, Mapping[str, int | str]]] = {
         "motor": {
             "left_fwd": 5,

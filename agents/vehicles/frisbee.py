@@ -93,6 +93,8 @@ class FrisbeeBot(Vehicle):
     input_names: ClassVar[tuple[str, ...]] = ("v_left", "v_right")
     output_names: ClassVar[tuple[str, ...]] = ("x", "y", "psi")
     profile: ClassVar[str] = "duemilanove"
+    #: Outputs come from motion capture (pose_source): a real board needs [mocap].
+    needs_pose: ClassVar[bool] = True
     default_pinout: ClassVar[Mapping[str, Mapping[str, int | str]]] = {
         "drive": {
             "left_fwd": 7,

@@ -2,12 +2,16 @@
 
 Prints every problem as ``file:key: reason`` and exits 2 when there is any; otherwise prints a
 short summary (agents, rate, ticks, graph facts) and any warnings, and exits 0.
+
+``hilswarm check --schema [PATH]`` prints (or writes to PATH) the JSON Schema of experiment
+files, generated from :mod:`hilswarm.orchestrator.schema`, for editors (taplo, VS Code).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from hilswarm.orchestrator.checks import CheckReport, check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
@@ -17,8 +21,15 @@ HELP = "validate an experiment file without starting anything"
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``hilswarm check``."""
-    parser.add_argument("file", help="experiment file (TOML)")
+    parser.add_argument("file", nargs="?", help="experiment file (TOML)")
     add_override_arguments(parser)
+    parser.add_argument(
+        "--schema",
+        nargs="?",
+        const="-",
+        metavar="PATH",
+        help="print the JSON Schema of experiment files (or write it to PATH) and exit",
+    )
     parser.add_argument(
         "--strict", action="store_true", help="treat warnings as problems (exit 2 on any)"
     )
@@ -26,7 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Check ``args.file``; 0 when valid, 2 when there are problems."""
-    report = check_file(args.file, overrides=overrides_from_args(args))
+    if args.schema is not None:
+        return write_schema(args.schema)
+    if args.file is None:
+        print("hilswarm check: give an experiment file (or --schema)", file=sys.stderr)
+        return 2
+    report = check_file(args.file, overrides=overrides_from_args(args), max_agents=args.max_agents)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     if report.problems or (args.strict and report.warnings):
@@ -67,3 +83,20 @@ def summary(report: CheckReport) -> str:
         link = spec.link or "(no board)"
         lines.append(f"  {spec.name}: {spec.vehicle} via {link}, controller {spec.controller}")
     return "\n".join(lines)
+
+
+def write_schema(target: str) -> int:
+    """Print the JSON Schema (``target`` ``"-"``) or write it to the file ``target``."""
+    from hilswarm.orchestrator.schema import json_schema_text  # noqa: PLC0415 - only here
+
+    text = json_schema_text()
+    if target == "-":
+        sys.stdout.write(text)
+        return 0
+    try:
+        Path(target).write_text(text, encoding="utf-8")
+    except OSError as exc:
+        print(f"hilswarm check: cannot write {target}: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {target}")
+    return 0
