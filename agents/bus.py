@@ -32,6 +32,10 @@ Configurations: the orchestrator opens a *router* session listening on loopback;
 *clients* of it (a peer mesh does not scale past a few dozen processes on two cores, and a peer
 hub does not relay between peers). Multicast scouting and gossip are off in every
 configuration; the link lease is short (1 s) so that a hung process is dropped quickly.
+
+:data:`LEAN_RUNTIME` hands Zenoh's runtime pools over to one application worker thread (the
+``ZENOH_RUNTIME`` environment variable): a client then runs 4 threads instead of 9. It is safe
+only where no bus callback blocks (one blocked callback would starve the lease keep-alives).
 """
 
 from __future__ import annotations
@@ -607,6 +611,14 @@ def has_subscribers(publisher: zenoh.Publisher) -> bool:
     """
     status = publisher.matching_status
     return bool(getattr(status, "matching", status))
+
+
+#: Zenoh runtime pools for hilswarm processes (the ``ZENOH_RUNTIME`` environment variable,
+#: read when a process opens its first session): every pool handed over to one worker thread.
+LEAN_RUNTIME = (
+    "(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), "
+    "rx: (handover: app), net: (handover: app))"
+)
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:

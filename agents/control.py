@@ -139,6 +139,11 @@ class Controller(ABC):
     n_states: ClassVar[int] = 0
     #: Every accepted parameter and its default (``None``: required or computed).
     default_params: ClassVar[Mapping[str, Any]] = {}
+    #: Names of the entries of ``x_hat`` (recorded as the fields of ``/<agent>/x_hat``);
+    #: empty, or not one per entry: ``x0``, ``x1``, ... (see :meth:`state_names_for`).
+    state_names: ClassVar[tuple[str, ...]] = ()
+    #: Unit of each named state entry (``{"integral_m_s": "m s"}``); absent: no unit.
+    state_units: ClassVar[Mapping[str, str]] = {}
 
     @property
     def name(self) -> str:
@@ -168,6 +173,24 @@ class Controller(ABC):
     def initial_state(self, params: Mapping[str, Any]) -> np.ndarray:
         """``x_hat_0`` when the ControlModel is given none: zeros of :attr:`n_states`."""
         return np.zeros(self.n_states)
+
+    def state_names_for(self, size: int) -> tuple[str, ...]:
+        """Names of the ``size`` entries of ``x_hat``: :attr:`state_names`, else ``x0``..."""
+        names = tuple(self.state_names)
+        return names if len(names) == size else tuple(f"x{i}" for i in range(size))
+
+    def params_changed(
+        self, old: Mapping[str, Any], new: Mapping[str, Any], x_hat: np.ndarray
+    ) -> np.ndarray:
+        """``x_hat`` to continue with after the parameters changed at run time (``set``).
+
+        Called by :meth:`ControlModel.replace_params` with the validated parameters before and
+        after the change; the default keeps the state. A controller whose state must restart
+        on some change (a new waypoint list) returns the restarted state here, so no marker of
+        the parameters has to live in ``x_hat``.
+        """
+        del old, new
+        return x_hat
 
     @abstractmethod
     def step(
@@ -334,7 +357,7 @@ class ControlModel:
         size = self._x_hat.shape[0]
         if size == 0 or self._x_channel is not None:
             return
-        self._x_channel = self.history.add_channel("x_hat", tuple(f"x{i}" for i in range(size)))
+        self._x_channel = self.history.add_channel("x_hat", self.controller.state_names_for(size))
 
     @property
     def k(self) -> int:
@@ -368,11 +391,15 @@ class ControlModel:
         """Replace all parameters (missing ones take the controller's defaults)."""
         given = dict(params)
         validated = self.controller.validate_params(given)
+        old = self._params
         self._given_params, self._params = given, validated
         self._params_view = MappingProxyType(validated)
         if reset_state:
             self._x_hat = self._initial_x_hat()
             self._ensure_x_channel()
+        else:
+            x_hat = self.controller.params_changed(old, validated, self._x_hat.copy())
+            self._x_hat = np.array(x_hat, dtype=np.float64).reshape(self._x_hat.shape)
 
     def reset(self, x0: ArrayLike | None = None) -> None:
         """Restart at tick 0 with ``x0`` (or the initial condition); history is cleared."""

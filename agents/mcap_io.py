@@ -41,12 +41,22 @@ import lz4.frame
 import numpy as np
 import zstandard
 from hilswarm.agents.errors import RecordingError
+from hilswarm.agents.record_schema import BASE_KEYS, experiment_log_time_ns, vector_schema
 from mcap.data_stream import RecordBuilder
 from mcap.exceptions import EndOfFile, McapError
 from mcap.opcode import Opcode
 from mcap.reader import StreamReader
 from mcap.records import Channel as McapChannel
-from mcap.records import ChunkIndex, DataEnd, Footer, Header, Statistics, SummaryOffset
+from mcap.records import (
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Metadata,
+    MetadataIndex,
+    Statistics,
+    SummaryOffset,
+)
 from mcap.records import Message as McapMessage
 from mcap.records import Schema as McapSchema
 from mcap.writer import MCAP0_MAGIC, Writer
@@ -57,8 +67,6 @@ logger = logging.getLogger(__name__)
 #: Default chunk size [bytes]: small, so a crash loses little.
 DEFAULT_CHUNK_SIZE = 32 * 1024
 
-#: Keys every vector message has.
-BASE_KEYS = ("k", "t", "values")
 
 #: Chunk compressions a writer offers.
 COMPRESSIONS = ("zstd", "lz4", "none")
@@ -67,31 +75,6 @@ DEFAULT_COMPRESSION = "zstd"
 
 #: Schema of a free-form JSON topic registered without a schema.
 ANY_OBJECT_SCHEMA: dict[str, Any] = {"type": "object"}
-
-
-def vector_schema(topic: str, fields: Sequence[str] | None = None) -> dict[str, Any]:
-    """The JSON Schema of a vector topic: ``k``, ``t``, ``values`` and the named ``fields``."""
-    properties: dict[str, Any] = {
-        "k": {"type": "integer", "description": "tick index"},
-        "t": {"type": "number", "description": "experiment time [s]"},
-        "values": {
-            "type": "array",
-            "items": {"type": ["number", "null"]},
-            "description": "the vector; null marks a non-finite (NaN/inf) entry",
-        },
-    }
-    for index, field in enumerate(fields or ()):
-        properties[field] = {
-            "type": ["number", "null"],
-            "description": f"values[{index}]",
-        }
-    return {
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "title": topic,
-        "type": "object",
-        "properties": properties,
-        "required": list(BASE_KEYS),
-    }
 
 
 def finite_or_none(value: float) -> float | None:
@@ -287,6 +270,7 @@ class ChunkedMcapWriter:
         self._count_order: list[int] = []  # channel ids in order of their first message
         self._times: list[int] = []  # log times of the chunk's messages [ns]
         self._chunk_indexes: list[ChunkIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
         self._start_time = 0
         self._end_time = 0
         self.message_count = 0
@@ -307,6 +291,17 @@ class ChunkedMcapWriter:
         self._size += len(data)
         if self._size > self._chunk_size:
             self.finish_chunk()
+
+    def add_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
+        """Write a metadata record (between chunks: the chunk in progress is written first)."""
+        self.finish_chunk()
+        builder = RecordBuilder()
+        Metadata(name=name, metadata=dict(metadata)).write(builder)
+        data = builder.end()
+        self._metadata_indexes.append(
+            MetadataIndex(offset=self._position, length=len(data), name=name)
+        )
+        self._write(data)
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         """Register a schema (recorded in the chunk in progress); returns its id (1, 2, ...)."""
@@ -451,7 +446,7 @@ class ChunkedMcapWriter:
             channel_message_counts={i: self._counts[i] for i in self._count_order},
             chunk_count=len(self._chunk_indexes),
             message_count=self.message_count,
-            metadata_count=0,
+            metadata_count=len(self._metadata_indexes),
             message_start_time=self._start_time,
             message_end_time=self._end_time,
             schema_count=len(self._schemas),
@@ -461,7 +456,7 @@ class ChunkedMcapWriter:
         group(Opcode.STATISTICS, (statistics,))
         group(Opcode.CHUNK_INDEX, self._chunk_indexes)
         group(Opcode.ATTACHMENT_INDEX, ())
-        group(Opcode.METADATA_INDEX, ())
+        group(Opcode.METADATA_INDEX, self._metadata_indexes)
         summary_offset_start = summary_start + summary.count
         for offset in offsets:
             offset.write(summary)
@@ -500,7 +495,10 @@ def _t_text(t: float) -> str:
 class _Topic:
     """A registered topic: its channel, schema, field names and JSON template."""
 
-    __slots__ = ("channel_id", "fields", "name", "quoted_fields", "schema", "template", "width")
+    __slots__ = (
+        "channel_id", "fields", "name", "quoted_fields", "schema", "template", "wall_template",
+        "width",
+    )  # fmt: skip
 
     def __init__(
         self, name: str, channel_id: int, schema: dict[str, Any], fields: tuple[str, ...] | None
@@ -514,8 +512,12 @@ class _Topic:
         # The JSON text of a message with "%" holes: k, t, the values and each named field.
         named = "".join(f",{name.replace('%', '%%')}:%s" for name in self.quoted_fields or ())
         self.template = '{"k":%d,"t":%s,"values":[%s]' + named + "}"
+        # The same with the wall time [ns] the message was received at (experiment clock).
+        self.wall_template = '{"k":%d,"t":%s,"wall_ns":%d,"values":[%s]' + named + "}"
 
-    def vector_bytes(self, k: int, t: float, values: Sequence[float]) -> bytes:
+    def vector_bytes(
+        self, k: int, t: float, values: Sequence[float], wall_ns: int | None = None
+    ) -> bytes:
         """:func:`vector_json` of a message of this topic, from its template.
 
         Raises:
@@ -541,6 +543,10 @@ class _Topic:
         if "n" in text:  # a NaN or an infinity: JSON has neither
             numbers = ["null" if "n" in number else number for number in text.split(",")]
             text = ",".join(numbers)
+        if wall_ns is not None:
+            if width is None:
+                return (self.wall_template % (int(k), t_text, wall_ns, text)).encode()
+            return (self.wall_template % (int(k), t_text, wall_ns, text, *numbers)).encode()
         if width is None:
             return (self.template % (int(k), t_text, text)).encode()
         return (self.template % (int(k), t_text, text, *numbers)).encode()
@@ -556,6 +562,10 @@ class McapJsonWriter:
         compression: ``"zstd"`` (default, :data:`DEFAULT_COMPRESSION`), ``"lz4"`` or
             ``"none"``.
         profile: the MCAP header profile (empty: none).
+        time_origin_ns: when given [ns, wall clock], the log time of a message with an
+            experiment time ``t`` is ``time_origin_ns + t``
+            (:func:`~hilswarm.agents.record_schema.experiment_log_time_ns`) and the log time
+            passed to a write method, the wall clock, goes into the message as ``wall_ns``.
 
     Use as a context manager, or call :meth:`close` (which writes the summary and footer).
     """
@@ -567,9 +577,11 @@ class McapJsonWriter:
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         compression: str = DEFAULT_COMPRESSION,
         profile: str = "",
+        time_origin_ns: int | None = None,
     ) -> None:
         check_chunk_options(chunk_size, compression)
         self.path = Path(path)
+        self._origin = time_origin_ns
         self._file = _DirectFile(self.path)
         try:
             self._writer = ChunkedMcapWriter(
@@ -623,13 +635,18 @@ class McapJsonWriter:
         if not isinstance(topic, str) or not topic.startswith("/") or len(topic) < 2:
             raise RecordingError(f"topic must be a string starting with '/', got {topic!r}")
 
-    def add_topic(self, topic: str, fields: Sequence[str] | None = None) -> None:
+    def add_topic(
+        self,
+        topic: str,
+        fields: Sequence[str] | None = None,
+        units: Mapping[str, str] | None = None,
+    ) -> None:
         """Register a vector topic; its messages carry ``k``, ``t``, ``values`` and ``fields``.
 
         With ``fields`` (one name per vector entry) every message also carries
         ``{field: values[i]}`` beside ``values``, and the schema names them, so Foxglove can
-        plot ``/a/y.x`` as well as ``/a/y.values[0]``. Registering a topic again with the
-        same fields does nothing.
+        plot ``/a/y.x`` as well as ``/a/y.values[0]``; ``units`` (field -> unit) go into the
+        schema's descriptions. Registering a topic again with the same fields does nothing.
 
         Raises:
             RecordingError: bad topic or field names, a name that clashes with ``k``/``t``/
@@ -658,7 +675,7 @@ class McapJsonWriter:
                     f"cannot register it with {names}"
                 )
             return
-        self._register(topic, vector_schema(topic, names), names)
+        self._register(topic, vector_schema(topic, names, units), names)
 
     def write(
         self,
@@ -739,10 +756,14 @@ class McapJsonWriter:
         entry = self._topics.get(topic)
         if entry is None:
             raise RecordingError(f"topic {topic!r} is not registered: call add_topic() first")
-        data = entry.vector_bytes(k, t, values)
         if type(log_time_ns) is not int or log_time_ns < 0:
             _check_log_time(log_time_ns)
             log_time_ns = int(log_time_ns)
+        if self._origin is None:
+            data = entry.vector_bytes(k, t, values)
+        else:
+            data = entry.vector_bytes(k, t, values, log_time_ns)
+            log_time_ns = experiment_log_time_ns(self._origin, t)
         if publish_time_ns is None:
             publish_time_ns = log_time_ns
         else:
@@ -773,6 +794,7 @@ class McapJsonWriter:
         self._check_open()
         topics = self._topics
         add = self._writer.add_message
+        origin = self._origin
         count = 0
         for topic, k, t, values, log_time_ns in rows:
             entry = topics.get(topic)
@@ -783,10 +805,14 @@ class McapJsonWriter:
                     )
                 self.add_topic(topic)
                 entry = topics[topic]
-            data = entry.vector_bytes(k, t, values)
             if type(log_time_ns) is not int or log_time_ns < 0:
                 _check_log_time(log_time_ns)
                 log_time_ns = int(log_time_ns)  # noqa: PLW2901 - a numpy integer
+            if origin is None:
+                data = entry.vector_bytes(k, t, values)
+            else:
+                data = entry.vector_bytes(k, t, values, log_time_ns)
+                log_time_ns = experiment_log_time_ns(origin, t)  # noqa: PLW2901
             add(entry.channel_id, data, log_time_ns, log_time_ns)
             count += 1
         return count
@@ -827,8 +853,13 @@ class McapJsonWriter:
         data: bytes,
         log_time_ns: int,
         schema: Mapping[str, Any] | None = None,
+        *,
+        t: float | None = None,
     ) -> None:
         """Write a JSON object that is already encoded (UTF-8, no NaN/Infinity: ``null``).
+
+        With an experiment clock (``time_origin_ns``) and ``t`` given, the log time is that
+        of ``t`` (the caller encodes ``wall_ns`` in ``data`` itself).
 
         For writers that build the JSON text of a frequent message themselves (templates are
         several times cheaper than building and encoding a dict). The topic is registered
@@ -848,6 +879,8 @@ class McapJsonWriter:
             entry = self._topics[topic]
         elif schema is not None and dict(schema) != entry.schema:
             raise RecordingError(f"topic {topic} is registered already with another schema")
+        if self._origin is not None and t is not None:
+            log_time_ns = experiment_log_time_ns(self._origin, t)
         self._add_encoded(entry.channel_id, bytes(data), log_time_ns, None)
 
     def _add(
@@ -857,6 +890,11 @@ class McapJsonWriter:
         log_time_ns: int,
         publish_time_ns: int | None,
     ) -> None:
+        t = message.get("t")
+        if self._origin is not None and isinstance(t, int | float) and "wall_ns" not in message:
+            _check_log_time(log_time_ns)
+            message = {**message, "wall_ns": int(log_time_ns)}
+            log_time_ns = experiment_log_time_ns(self._origin, float(t))
         data = json.dumps(message, allow_nan=False, separators=(",", ":")).encode()
         self._add_encoded(channel_id, data, log_time_ns, publish_time_ns)
 
@@ -871,6 +909,11 @@ class McapJsonWriter:
             _check_log_time(publish_time_ns)
             publish_time = int(publish_time_ns)
         self._writer.add_message(channel_id, data, log_time, publish_time)
+
+    def add_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
+        """Write an MCAP metadata record ``name`` (string keys and values)."""
+        self._check_open()
+        self._writer.add_metadata(name, metadata)
 
     def flush(self) -> None:
         """Finish the chunk in progress and hand everything written so far to the OS."""
@@ -964,6 +1007,15 @@ def iter_messages(
                 yield topic, record.log_time, json.loads(record.data)
 
 
+def read_metadata(path: str | os.PathLike[str]) -> dict[str, dict[str, str]]:
+    """The metadata records of an MCAP file by name (readable part of a truncated file)."""
+    return {
+        record.name: dict(record.metadata)
+        for record in _iter_records(path)
+        if isinstance(record, Metadata)
+    }
+
+
 def read_schemas(path: str | os.PathLike[str]) -> dict[str, dict[str, Any]]:
     """The JSON Schema of every topic in an MCAP file (readable part of a truncated file)."""
     schemas: dict[int, dict[str, Any]] = {}
@@ -1019,5 +1071,7 @@ def recover(source: str | os.PathLike[str], destination: str | os.PathLike[str])
                     sequence=record.sequence,
                 )
                 copied += 1
+            elif isinstance(record, Metadata):
+                writer.add_metadata(name=record.name, data=dict(record.metadata))
         writer.finish()
     return copied

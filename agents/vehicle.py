@@ -144,6 +144,8 @@ class Vehicle(ABC):
         n_inputs, n_outputs: sizes of ``u`` and ``y``.
         input_names, output_names: names of the entries of ``u`` and ``y`` (units in the docs
             of the subclass, e.g. ``"v_left"`` [m/s]).
+        input_units, output_units: entry name -> unit (``{"v_left": "m/s"}``), recorded in
+            the MCAP schemas and shown on plot axes; an entry without one has no unit.
         profile: board profile name (``"uno"``, ``"duemilanove"``, ``"fio"``).
         default_pinout: device -> role -> pin (13, ``"D13"``, ``"A0"``).
         needs_board: False for vehicles without hardware (simulated plants).
@@ -174,6 +176,8 @@ class Vehicle(ABC):
     n_outputs: ClassVar[int]
     input_names: ClassVar[tuple[str, ...]]
     output_names: ClassVar[tuple[str, ...]]
+    input_units: ClassVar[Mapping[str, str]] = {}
+    output_units: ClassVar[Mapping[str, str]] = {}
     profile: ClassVar[str] = "uno"
     default_pinout: ClassVar[Mapping[str, Mapping[str, int | str]]]
     needs_board: ClassVar[bool] = True

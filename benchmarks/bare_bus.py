@@ -59,6 +59,7 @@ class BareResult:
     late_ticks: int
     completion_s: np.ndarray  # per complete tick [s]
     wall_s: float
+    startup_s: float = float("nan")  # first client started to every client alive [s]
 
     @property
     def late_fraction(self) -> float:
@@ -261,6 +262,7 @@ def run_bare(
         ),
     ]
     pattern = "clock" if self_clocked else "window" if window else "tick"
+    started = time.perf_counter()
     command = [sys.executable, os.path.abspath(__file__), "--client"]
     clients = [
         subprocess.Popen([*command, str(i), str(n), endpoint, pattern], stdin=subprocess.PIPE)
@@ -270,6 +272,7 @@ def run_bare(
     try:
         if not all_alive.wait(120):
             raise RuntimeError(f"only {len(alive)} of {n} bare clients came up")
+        startup = time.perf_counter() - started
         time.sleep(0.5)  # let every subscription reach the router
         start = time.perf_counter()
         if lockstep:
@@ -311,7 +314,7 @@ def run_bare(
         times = times[times <= period]
         late = n_ticks - times.size
     return BareResult(
-        n, rate_hz, "lockstep" if lockstep else "realtime", n_ticks, late, times, wall
+        n, rate_hz, "lockstep" if lockstep else "realtime", n_ticks, late, times, wall, startup
     )
 
 

@@ -27,6 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "stop": ("stop", "bring every agent of a running experiment to safe mode and stop"),
     "plot": ("plot", "write PNG plots of a recording"),
     "recover": ("recover", "rewrite an MCAP file whose writer was killed"),
+    "replay": (
+        "replay",
+        "replay a recording through its controllers (or changed ones) and report divergence",
+    ),
     "agent": ("agent", "start one agent process that joins a running experiment"),
     "new": ("new", "write a skeleton vehicle or device with its test and experiment file"),
     "calibrate": ("calibrate", "fit and plot a calibration table from measured pairs"),

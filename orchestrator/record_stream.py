@@ -199,12 +199,17 @@ class FrameRecorder:
         # Per agent, (k, sense_s, compute_s, actuate_s, skipped) of its latest y: tick k's times.
         self._timings: list[tuple[int, float, float, float, int] | None] = [None] * len(self.names)
         self._ticks_registered = False
+        self._wall = recorder.experiment_clock  # /orchestrator/ticks carries wall_ns
         self._plain_y: set[int] = set()
+        # Topics whose field names did not match the values (recorded plain from then on).
+        self._plain_topics: set[str] = set()
         # Per frame length, the layout of the last Y frame of that length: (struct, n_y, n_u,
         # n_x), n_u = n_x = -1 for a frame without a report.
         self._y_layouts: dict[int, tuple[struct.Struct, int, int, int]] = {}
         # Per agent, the number of field names of its y topic (None: no names), once known.
         self._y_width: dict[int, int | None] = {}
+        # The same for the u and x_hat topics, by topic.
+        self._topic_widths: dict[str, int | None] = {}
         # Vector messages (topic, k, t, values, log time) not yet handed to the recorder.
         self._rows: list[tuple[str, int, float, Sequence[float], int]] = []
         # Telemetry topics seen: topic -> field names it was registered with (None: plain).
@@ -300,9 +305,31 @@ class FrameRecorder:
             self._plain_vector(self._y_topics[i], k, t, values, log_ns)
         if u:
             t_u = t - self.dt
-            rows.append((self._u_topics[i], k, t_u, u, log_ns))
+            self._signal_row(rows, (self._u_topics[i], k, t_u, u, log_ns))
             if x_hat:
-                rows.append((self._x_topics[i], k, t_u, x_hat, log_ns))
+                self._signal_row(rows, (self._x_topics[i], k, t_u, x_hat, log_ns))
+
+    def _signal_row(
+        self,
+        rows: list[tuple[str, int, float, Sequence[float], int]],
+        row: tuple[str, int, float, Sequence[float], int],
+    ) -> None:
+        """Queue ``u``/``x_hat``; one whose size does not match its names is recorded plain."""
+        topic, k, t, values, log_ns = row
+        if topic not in self._plain_topics:
+            fields = self._topic_widths.get(topic, -1)
+            if fields == -1:
+                names = self.recorder.topic_fields(topic)
+                fields = self._topic_widths[topic] = None if names is None else len(names)
+            if fields is None or fields == len(values):
+                rows.append(row)
+                return
+            logger.warning("%s: %d values, not its %d named entries: recorded plain",
+                           topic, len(values), fields)  # fmt: skip
+            self._plain_topics.add(topic)
+        if rows:
+            self._flush_rows()
+        self._plain_vector(topic, k, t, values, log_ns)
 
     def _unpack_y(self, frame: bytes) -> tuple[Any, ...]:
         """The numbers of a Y frame: agent, log time [ns], k, t [s], y, sense_s, compute_s,
@@ -402,14 +429,17 @@ class FrameRecorder:
                 for j, template in enumerate(answered)
             ]
         )  # fmt: skip
+        wall = f'"wall_ns":{log_ns},' if self._wall else ""
         text = (
-            f'{{"k":{k},"t":{texts[0]},"values":[],'
+            f'{{"k":{k},"t":{texts[0]},{wall}"values":[],'
             f'"scheduled_s":{texts[1]},"send_delay_s":{texts[2]},'
             f'"completion_s":{texts[3]},"late":[{late}],"missing":[{missing}],'
             f'"agents":{{{agents}}}}}'
         )
         schema = None if self._ticks_registered else TICKS_SCHEMA
-        self.recorder.write_encoded(TICKS_TOPIC, text.encode(), log_time_ns=log_ns, schema=schema)
+        self.recorder.write_encoded(
+            TICKS_TOPIC, text.encode(), log_time_ns=log_ns, schema=schema, t=k * self.dt
+        )
         self._ticks_registered = True
 
     def _status(self, frame: bytes) -> None:

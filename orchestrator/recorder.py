@@ -31,10 +31,10 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
-from hilswarm.agents.errors import HilswarmError, RecordingError
+from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION, McapJsonWriter
-from hilswarm.orchestrator import calibration_report
-from hilswarm.orchestrator.experiment import AgentSpec, Experiment
+from hilswarm.orchestrator import calibration_report, record_content
+from hilswarm.orchestrator.experiment import Experiment
 from numpy.typing import ArrayLike
 
 logger = logging.getLogger(__name__)
@@ -109,8 +109,11 @@ class Recorder:
         chunk_size: MCAP chunk size [bytes].
         compression: chunk compression, ``"zstd"``, ``"lz4"`` or ``"none"`` (default:
             :data:`~hilswarm.agents.mcap_io.DEFAULT_COMPRESSION`).
-        log_time_ns: log time [ns, wall clock, Unix epoch] of the ``/experiment`` message.
-            When ``None`` the message is written just before the first other message, with
+        log_time_ns: start of the run [ns, wall clock, Unix epoch]: the log time of the
+            ``/experiment`` message and of experiment time 0. Every message's log time is then
+            this plus its experiment time ``t``, and the wall time a write method is given
+            goes into the message as ``wall_ns``. When ``None``, log times are the wall times
+            given, and ``/experiment`` is written just before the first other message, with
             that message's log time (the recorder reads no clock itself).
 
     Use as a context manager, or call :meth:`close` on every exit path: closing writes the
@@ -129,7 +132,10 @@ class Recorder:
         self.path = Path(path)
         self.experiment = experiment
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._writer = McapJsonWriter(self.path, chunk_size=chunk_size, compression=compression)
+        self._origin = log_time_ns
+        self._writer = McapJsonWriter(
+            self.path, chunk_size=chunk_size, compression=compression, time_origin_ns=log_time_ns
+        )
         self._lock = threading.Lock()
         self._experiment_written = False
         self._closed = False
@@ -155,6 +161,11 @@ class Recorder:
     def closed(self) -> bool:
         """True once :meth:`close` has run."""
         return self._closed
+
+    @property
+    def experiment_clock(self) -> bool:
+        """True if log times are experiment times (the run's start was given)."""
+        return self._origin is not None
 
     # -- writing -----------------------------------------------------------------------------
 
@@ -182,16 +193,28 @@ class Recorder:
         vector = _as_list(values, topic)
         self._write(topic, k=k, t=t, values=vector, log_time_ns=log_time_ns, fields=named_fields)
 
-    def add_topic(self, topic: str, fields: Sequence[str] | None = None) -> None:
+    def add_topic(
+        self,
+        topic: str,
+        fields: Sequence[str] | None = None,
+        units: Mapping[str, str] | None = None,
+    ) -> None:
         """Name the entries of a vector topic before its first message (optional).
 
         With ``fields`` (one name per vector entry, e.g. a vehicle's ``output_names``) every
-        message also carries ``{field: values[i]}``, so Foxglove plots ``/a1/y.x``. Topics
-        written without this call are registered on first use without entry names.
+        message also carries ``{field: values[i]}``, so Foxglove plots ``/a1/y.x``; ``units``
+        (field -> unit) go into the schema. Topics written without this call are registered
+        on first use without entry names.
         """
         with self._lock:
             self._check_open(topic)
-            self._writer.add_topic(topic, fields=fields)
+            self._writer.add_topic(topic, fields=fields, units=units)
+
+    def write_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
+        """Write an MCAP metadata record (string keys and values), e.g. the run's record."""
+        with self._lock:
+            self._check_open(name)
+            self._writer.add_metadata(name, metadata)
 
     def topic_fields(self, topic: str) -> tuple[str, ...] | None:
         """The entry names ``topic`` was registered with (``None``: none, or not registered)."""
@@ -251,16 +274,19 @@ class Recorder:
         *,
         log_time_ns: int,
         schema: Mapping[str, Any] | None = None,
+        t: float | None = None,
     ) -> None:
         """Record a JSON message already encoded by the caller (see ``write_encoded``).
 
-        ``data`` must hold ``k``, ``t`` and ``values`` like every message of a run recording.
+        ``data`` must hold ``k``, ``t`` and ``values`` like every message of a run recording
+        (and ``wall_ns``, the wall time, when the recorder runs on the experiment clock);
+        ``t`` is its experiment time [s].
         """
         with self._lock:
             self._check_open(topic)
             if not self._experiment_written:
                 self._write_experiment(log_time_ns)
-            self._writer.write_encoded(topic, data, int(log_time_ns), schema)
+            self._writer.write_encoded(topic, data, int(log_time_ns), schema, t=t)
             self.message_count += 1
 
     def write_message(self, topic: str, message: Mapping[str, Any], *, log_time_ns: int) -> None:
@@ -432,64 +458,34 @@ def _as_list(values: ArrayLike, topic: str) -> list[float]:
 
 
 def record_vehicles(recorder: Recorder, experiment: Experiment, *, log_time_ns: int) -> None:
-    """Record what the vehicles of ``experiment`` are, before the first tick.
+    """Record what the agents of ``experiment`` are, before the first tick.
 
-    For every agent whose vehicle can be built here (as ``hilswarm check`` builds it, without a
-    board): its calibration (the ``calibration`` file of the agent, or the vehicle class's
-    default) on ``/<agent>/calibration``, and the names of its outputs as the fields of
-    ``/<agent>/y`` (``/leader/y.x``). An agent whose vehicle cannot be built (a remote agent's
-    class not installed here) still gets its calibration file recorded when it has one.
+    For every agent (as far as its classes can be built here, see
+    :func:`~hilswarm.orchestrator.record_content.describe_agent`): its calibration on
+    ``/<agent>/calibration``, and the entry names and units of ``/<agent>/y``, ``/<agent>/u``
+    (from the vehicle) and ``/<agent>/x_hat`` (from the controller's ``state_names``). Then
+    the run's metadata record (:func:`~hilswarm.orchestrator.record_content.run_metadata`).
     """
+    calibrations: dict[str, Any] = {}
     for spec in experiment.agents:
-        vehicle = _build_vehicle(experiment, spec)
-        calibration = getattr(vehicle, "calibration", None)
-        if calibration is None and vehicle is None and spec.calibration is not None:
-            calibration = _load_calibration(spec)
+        description = record_content.describe_agent(experiment, spec)
+        calibration = description.calibration
+        calibrations[spec.name] = calibration
         if calibration is not None:
             recorder.write_calibration(
                 spec.name,
                 calibration_report.calibration_as_json(calibration),
                 log_time_ns=log_time_ns,
             )
-        names = getattr(vehicle, "output_names", None)
-        n_outputs = getattr(vehicle, "n_outputs", None)
-        if names and isinstance(n_outputs, int) and len(names) == n_outputs:
+        signals = (("y", description.y), ("u", description.u), ("x_hat", description.x_hat))
+        for leaf, signal in signals:
+            if signal is None:
+                continue
+            topic = f"/{spec.name}/{leaf}"
             try:
-                recorder.add_topic(f"/{spec.name}/y", fields=list(names))
-            except RecordingError as exc:  # e.g. an output called "k": plain values then
-                logger.warning("/%s/y without field names: %s", spec.name, exc)
-
-
-def _build_vehicle(experiment: Experiment, spec: AgentSpec) -> Any:
-    """The agent's vehicle built without a board (``None`` when that is not possible here)."""
-    from hilswarm.agents.registry import (  # noqa: PLC0415 - only when recording
-        add_search_path,
-        resolve_vehicle,
+                recorder.add_topic(topic, fields=signal.names, units=signal.units)
+            except RecordingError as exc:  # e.g. an entry called "k": plain values then
+                logger.warning("%s without field names: %s", topic, exc)
+    recorder.write_metadata(
+        record_content.RUN_METADATA, record_content.run_metadata(experiment, calibrations)
     )
-
-    add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
-
-    kwargs: dict[str, Any] = {"name": spec.name, "dt": experiment.dt}
-    if spec.pinout:
-        kwargs["pinout"] = spec.pinout
-    if spec.vehicle_params:
-        kwargs["params"] = spec.vehicle_params
-    if spec.initial_state:
-        kwargs["initial_state"] = spec.initial_state
-    if spec.calibration is not None:
-        kwargs["calibration"] = spec.calibration
-    try:
-        return resolve_vehicle(spec.vehicle)(**kwargs)
-    except (HilswarmError, ValueError, TypeError, OSError, ImportError) as exc:
-        logger.warning("agent %s: vehicle not built for the recording: %s", spec.name, exc)
-        return None
-
-
-def _load_calibration(spec: AgentSpec) -> Any:
-    from hilswarm.agents.calibration import Calibration  # noqa: PLC0415 - only when recording
-
-    try:
-        return Calibration.from_file(spec.calibration)
-    except (HilswarmError, ValueError, OSError) as exc:
-        logger.warning("agent %s: calibration not recorded: %s", spec.name, exc)
-        return None

@@ -196,6 +196,15 @@ class BlimpFlightController(Controller):
     """
 
     n_states: ClassVar[int] = N_STATES
+    state_names: ClassVar[tuple[str, ...]] = tuple(index.name.lower() for index in StateIndex)
+    state_units: ClassVar[Mapping[str, str]] = {
+        **dict.fromkeys(("x", "y", "z", "leg_x", "leg_y", "hold_x", "hold_y"), "m"),
+        **dict.fromkeys(("psi", "hold_psi", "mu"), "rad"),
+        **dict.fromkeys(("vx", "vy", "vz"), "m/s"),
+        "r": "rad/s",
+        **dict.fromkeys(("t_left", "t_right"), "N"),
+        "mode_time": "s",
+    }
     default_params: ClassVar[Mapping[str, Any]] = {
         "waypoint": (0.0, 0.0, -1.0),
         "heading": None,

@@ -62,6 +62,12 @@ class OffsetFollower(Controller):
     """
 
     n_states: ClassVar[int] = len(X_HAT_FIELDS)
+    state_names: ClassVar[tuple[str, ...]] = X_HAT_FIELDS
+    state_units: ClassVar[Mapping[str, str]] = {
+        "leader_x": "m",
+        "leader_y": "m",
+        "leader_psi": "rad",
+    }
     default_params: ClassVar[Mapping[str, Any]] = {
         "leader": None,
         "distance_m": 0.3,

@@ -20,9 +20,10 @@ world frame], heading [rad, from world x towards world y]). The waypoint list (p
 restarts at its first waypoint.
 
 The controller state ``x_hat`` (recorded on ``/<agent>/x_hat``) is
-``[waypoint_index, phase, integral_m_s, previous_error_m, waypoints_fingerprint]`` with phase
-0 = pivoting, 1 = driving, 2 = holding at the last waypoint, ``previous_error_m`` = -1 when
-there is no previous sample in this leg.
+``[waypoint_index, phase, integral_m_s, previous_error_m]`` with phase 0 = pivoting, 1 =
+driving, 2 = holding at the last waypoint, ``previous_error_m`` = -1 when there is no previous
+sample in this leg. A new waypoint list (``hilswarm set``) restarts that state at its first
+waypoint (:meth:`WaypointController.params_changed`).
 """
 
 from __future__ import annotations
@@ -42,16 +43,10 @@ from hilswarm.agents.sim.differential_drive import (
 )
 
 #: Names of the entries of x_hat.
-X_HAT_FIELDS = ("waypoint_index", "phase", "integral_m_s", "previous_error_m", "fingerprint")
+X_HAT_FIELDS = ("waypoint_index", "phase", "integral_m_s", "previous_error_m")
 #: Phases (x_hat[1]).
 PIVOTING, DRIVING, HOLDING = 0, 1, 2
 _NO_PREVIOUS = -1.0
-_FINGERPRINT_MASK = (1 << 32) - 1
-
-
-def waypoints_fingerprint(waypoints: np.ndarray) -> float:
-    """A float (exact integer < 2**32) that changes whenever the waypoint list changes."""
-    return float(hash(tuple(float(v) for v in waypoints.ravel())) & _FINGERPRINT_MASK)
 
 
 def _positive(params: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> float:
@@ -100,8 +95,10 @@ class WaypointController(Controller):
     """
 
     n_states: ClassVar[int] = len(X_HAT_FIELDS)
-    #: (validated waypoints, parsed points, fingerprint) of the last list step() saw.
-    _route_cache: tuple[Any, list[tuple[float, float]], float] | None = None
+    state_names: ClassVar[tuple[str, ...]] = X_HAT_FIELDS
+    state_units: ClassVar[Mapping[str, str]] = {"integral_m_s": "m s", "previous_error_m": "m"}
+    #: (validated waypoints, parsed points) of the last list step() saw.
+    _route_cache: tuple[Any, list[tuple[float, float]]] | None = None
     default_params: ClassVar[Mapping[str, Any]] = {
         "waypoints": [[0.0, 0.0]],
         "mode": "p",
@@ -139,8 +136,16 @@ class WaypointController(Controller):
 
     def initial_state(self, params: Mapping[str, Any]) -> np.ndarray:
         """Start at waypoint 0, pivoting, with an empty integral."""
-        fingerprint = waypoints_fingerprint(parse_waypoints(params["waypoints"]))
-        return np.array([0.0, PIVOTING, 0.0, _NO_PREVIOUS, fingerprint])
+        del params
+        return np.array([0.0, PIVOTING, 0.0, _NO_PREVIOUS])
+
+    def params_changed(
+        self, old: Mapping[str, Any], new: Mapping[str, Any], x_hat: np.ndarray
+    ) -> np.ndarray:
+        """A new waypoint list restarts at its first waypoint; other changes keep the state."""
+        if old.get("waypoints") != new.get("waypoints"):
+            return self.initial_state(new)
+        return x_hat
 
     def step(
         self, tick: TickInput, x_hat: np.ndarray, params: Mapping[str, Any]
@@ -150,11 +155,9 @@ class WaypointController(Controller):
         if y.size < 3:
             raise ControllerError(f"waypoint controller needs y = [x, y, psi], got {y!r}")
         x, y_pos, psi = y.tolist()[:3]
-        waypoints, fingerprint = self._route(params["waypoints"])
+        waypoints = self._route(params["waypoints"])
         state = np.asarray(x_hat, dtype=float).tolist()
         index, phase, integral, previous = int(state[0]), int(state[1]), state[2], state[3]
-        if state[4] != fingerprint:  # a new waypoint list: start over
-            index, phase, integral, previous = 0, PIVOTING, 0.0, _NO_PREVIOUS
         index = min(index, len(waypoints) - 1)
         tolerance = params["waypoint_tolerance_m"]
 
@@ -166,7 +169,7 @@ class WaypointController(Controller):
             distance = math.hypot(target_x - x, target_y - y_pos)
         last = index == len(waypoints) - 1
         if last and (distance <= tolerance or (phase == HOLDING and distance <= 2.0 * tolerance)):
-            return np.zeros(2), np.array([index, HOLDING, 0.0, _NO_PREVIOUS, fingerprint])
+            return np.zeros(2), np.array([index, HOLDING, 0.0, _NO_PREVIOUS])
         if phase == HOLDING:
             phase = PIVOTING
 
@@ -178,28 +181,26 @@ class WaypointController(Controller):
             yaw_rate = params["turn_gain"] * bearing_error
             v_left, v_right = wheel_speeds(0.0, yaw_rate, params["track_width_m"])
             v_left, v_right = scale_wheel_speeds(v_left, v_right, params["max_wheel_speed_m_s"])
-            state = np.array([index, PIVOTING, 0.0, _NO_PREVIOUS, fingerprint])
+            state = np.array([index, PIVOTING, 0.0, _NO_PREVIOUS])
             return np.array([v_left, v_right]), state
 
         speed, integral = self._forward_speed(distance, previous, integral, tick.dt, params)
-        state = np.array([index, DRIVING, integral, distance, fingerprint])
+        state = np.array([index, DRIVING, integral, distance])
         return np.array([speed, speed]), state
 
-    def _route(self, value: Any) -> tuple[list[tuple[float, float]], float]:
-        """The waypoints ``[(x, y), ...]`` [m] and their fingerprint, parsed once per list.
+    def _route(self, value: Any) -> list[tuple[float, float]]:
+        """The waypoints ``[(x, y), ...]`` [m], parsed once per list.
 
         Validated parameters hold an immutable tuple, so the parse is remembered for that very
         object; anything else (a list passed straight to step()) is parsed every time.
         """
         cached = self._route_cache
         if cached is not None and cached[0] is value:
-            return cached[1], cached[2]
-        array = parse_waypoints(value)
-        points = [(x, y) for x, y in array.tolist()]
-        fingerprint = waypoints_fingerprint(array)
+            return cached[1]
+        points = [(x, y) for x, y in parse_waypoints(value).tolist()]
         if type(value) is tuple and all(type(point) is tuple for point in value):
-            self._route_cache = (value, points, fingerprint)
-        return points, fingerprint
+            self._route_cache = (value, points)
+        return points
 
     @staticmethod
     def _forward_speed(

@@ -56,7 +56,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 from hilswarm.agents.errors import PlantError
@@ -131,6 +131,14 @@ class BlimpPlant(ContinuousPlant):
         params: the parameters used.
         mass_diagonal: diagonal of M [kg ×3, kg·m² ×3].
     """
+
+    #: Units of the inputs and outputs (recorded in the MCAP schemas, shown on plot axes).
+    input_units: ClassVar[Mapping[str, str]] = {
+        "thrust_left": "N",
+        "thrust_right": "N",
+        "thrust_angle": "rad",
+    }
+    output_units: ClassVar[Mapping[str, str]] = {"x": "m", "y": "m", "z": "m", "yaw": "rad"}
 
     def __init__(self, params: BlimpParams = DEFAULT_BLIMP_PARAMS) -> None:
         if not isinstance(params, BlimpParams):

@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 from hilswarm.agents.errors import PlantError
@@ -172,6 +172,10 @@ class DifferentialDrive(ContinuousPlant):
     Args:
         geometry: track, wheel size and speed limit (default: the thesis' Frisbee bot).
     """
+
+    #: Units of the inputs and outputs (recorded in the MCAP schemas, shown on plot axes).
+    input_units: ClassVar[Mapping[str, str]] = {"v_left": "m/s", "v_right": "m/s"}
+    output_units: ClassVar[Mapping[str, str]] = {"x": "m", "y": "m", "psi": "rad"}
 
     def __init__(self, geometry: DriveGeometry = FRISBEE_GEOMETRY) -> None:
         if not isinstance(geometry, DriveGeometry):

@@ -93,6 +93,8 @@ class SimulatedVehicle(Vehicle, abstract=True):
         self.n_outputs = self.plant.n_outputs  # type: ignore[misc]
         self.input_names = tuple(self.plant.input_names)  # type: ignore[misc]
         self.output_names = tuple(self.plant.output_names)  # type: ignore[misc]
+        self.input_units = dict(getattr(self.plant, "input_units", {}))  # type: ignore[misc]
+        self.output_units = dict(getattr(self.plant, "output_units", {}))  # type: ignore[misc]
         if dt is None:
             raise VehicleError(f"{label}: dt (the control period [s]) is required")
         super().__init__(

@@ -16,6 +16,8 @@ With ``k1 = k2 = m = 1`` and ``c1 = c2 = 0`` the state matrix is eq. 3.3 with ei
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from typing import ClassVar
 
 import numpy as np
 from hilswarm.agents.errors import PlantError
@@ -49,6 +51,10 @@ class SpringMassDamper(LinearPlant):
     Raises:
         PlantError: a parameter is not a finite number in its range.
     """
+
+    #: Units of the inputs and outputs (recorded in the MCAP schemas, shown on plot axes).
+    input_units: ClassVar[Mapping[str, str]] = {"F1": "N", "F2": "N"}
+    output_units: ClassVar[Mapping[str, str]] = {"x": "m", "xdot": "m/s", "y": "m", "ydot": "m/s"}
 
     def __init__(
         self,

@@ -95,6 +95,12 @@ class Blimpduino(Vehicle):
     n_outputs: ClassVar[int] = 4
     input_names: ClassVar[tuple[str, ...]] = ("thrust_left", "thrust_right", "thrust_angle")
     output_names: ClassVar[tuple[str, ...]] = ("x", "y", "z", "yaw")
+    input_units: ClassVar[Mapping[str, str]] = {
+        "thrust_left": "N",
+        "thrust_right": "N",
+        "thrust_angle": "rad",
+    }
+    output_units: ClassVar[Mapping[str, str]] = {"x": "m", "y": "m", "z": "m", "yaw": "rad"}
     profile: ClassVar[str] = "fio"
     #: Outputs come from motion capture (pose_source): a real board needs [mocap].
     needs_pose: ClassVar[bool] = True

@@ -92,6 +92,8 @@ class FrisbeeBot(Vehicle):
     n_outputs: ClassVar[int] = 3
     input_names: ClassVar[tuple[str, ...]] = ("v_left", "v_right")
     output_names: ClassVar[tuple[str, ...]] = ("x", "y", "psi")
+    input_units: ClassVar[Mapping[str, str]] = {"v_left": "m/s", "v_right": "m/s"}
+    output_units: ClassVar[Mapping[str, str]] = {"x": "m", "y": "m", "psi": "rad"}
     profile: ClassVar[str] = "duemilanove"
     #: Outputs come from motion capture (pose_source): a real board needs [mocap].
     needs_pose: ClassVar[bool] = True

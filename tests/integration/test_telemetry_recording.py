@@ -145,7 +145,7 @@ def check_telemetry_topics(recording: dict, agent: str, *, slack: int) -> None:
         assert 0 <= len(ys) - len(ks) <= slack, (topic, len(ks), len(ys))
         assert set(ks) <= set(ys)
         for message in messages:
-            assert list(message) == ["k", "t", "values", *fields], message
+            assert list(message) == ["k", "t", "wall_ns", "values", *fields], message
             assert message["values"] == [message[f] for f in fields]
             assert message["t"] == pytest.approx(message["k"] / RATE_HZ)
 

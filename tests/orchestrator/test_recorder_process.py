@@ -143,7 +143,10 @@ def test_frames_are_recorded_in_frame_order_however_they_arrive(
     messages = list(iter_messages(one_by_one))
     assert list(iter_messages(whole)) == messages == list(iter_messages(pieces))
     by_topic: dict[str, list[dict]] = {}
-    for topic, _, message in messages:
+    for topic, log_time, message in messages:
+        # experiment clock: log time = run start + t; the wall time kept in the message
+        assert isinstance(message.pop("wall_ns"), int)
+        assert log_time == T0 + round(message["t"] * 1e9)
         by_topic.setdefault(topic, []).append(message)
     # named outputs beside the values, except f1's from the frame that did not match them on
     assert by_topic["/leader/y"][3] == {
