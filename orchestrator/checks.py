@@ -24,7 +24,7 @@ consensus gain that the Euler step makes unstable).
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Container, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,13 +104,14 @@ def check_file(
     *,
     overrides: Mapping[str, Any] | None = None,
     max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
 ) -> CheckReport:
     """Load ``path`` (with ``overrides``, as :func:`load_experiment`) and run every check.
 
     The agents whose own tables are valid are checked even when another part of the file is
     broken, so every problem shows in one pass.
     """
-    parts = load_parts(path, overrides=overrides, max_agents=max_agents)
+    parts = load_parts(path, overrides=overrides, max_agents=max_agents, remote=remote)
     report = CheckReport(Path(path), parts.experiment, list(parts.problems))
     check_parts(parts, report)
     return report

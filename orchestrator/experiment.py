@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import re
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -295,6 +295,7 @@ def load_experiment(
     *,
     overrides: Mapping[str, Any] | None = None,
     max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
 ) -> Experiment:
     """Load, check and return the experiment in ``path``.
 
@@ -304,11 +305,15 @@ def load_experiment(
             (``mode``, ``duration_s``, ``rate_hz``, ``on_agent_loss``, ``watchdog_s``, ``seed``,
             ...) and ``links`` (agent name -> link URL, e.g. ``{"leader": "/dev/ttyUSB0"}``).
         max_agents: most agents accepted (default :data:`DEFAULT_MAX_AGENTS`).
+        remote: agents whose board is on another machine (``hilswarm run --remote``): their
+            links are checked without what only that machine can know (device, firmware).
 
     Raises:
         ExperimentError: listing every problem found (file, key, reason).
     """
-    experiment, problems = parse_experiment(path, overrides=overrides, max_agents=max_agents)
+    experiment, problems = parse_experiment(
+        path, overrides=overrides, max_agents=max_agents, remote=remote
+    )
     if problems or experiment is None:
         raise ExperimentError(problems or [Problem(path, "", "cannot be loaded")])
     return experiment
@@ -319,9 +324,10 @@ def parse_experiment(
     *,
     overrides: Mapping[str, Any] | None = None,
     max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
 ) -> tuple[Experiment | None, list[Problem]]:
     """Like :func:`load_experiment` but return ``(experiment or None, problems)``."""
-    parts = load_parts(path, overrides=overrides, max_agents=max_agents)
+    parts = load_parts(path, overrides=overrides, max_agents=max_agents, remote=remote)
     return parts.experiment, parts.problems
 
 
@@ -330,6 +336,7 @@ def load_parts(
     *,
     overrides: Mapping[str, Any] | None = None,
     max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
 ) -> ExperimentParts:
     """Load ``path`` as far as it goes: see :class:`ExperimentParts`."""
     path = Path(path)
@@ -347,15 +354,22 @@ def load_parts(
     except tomllib.TOMLDecodeError as exc:
         parts.problems.append(Problem(path, "", f"not valid TOML: {exc}"))
         return parts
-    _Loader(parts, data, max_agents).load(overrides or {}, text)
+    _Loader(parts, data, max_agents, remote).load(overrides or {}, text)
     return parts
 
 
 class _Loader:
     """Validates each table with its schema model, then the rules that span tables."""
 
-    def __init__(self, parts: ExperimentParts, data: dict[str, Any], max_agents: int) -> None:
+    def __init__(
+        self,
+        parts: ExperimentParts,
+        data: dict[str, Any],
+        max_agents: int,
+        remote: Container[str],
+    ) -> None:
         self.parts = parts
+        self.remote = remote
         self.path = parts.path
         self.data = data
         self.max_agents = max_agents
@@ -513,9 +527,8 @@ class _Loader:
                 self.parts.agents[name] = spec
 
     def _spec(self, name: str, merged: dict[str, Any]) -> AgentSpec | None:
-        key = f"agents.{name}"
         link = merged.get("link")
-        if link is not None and not self._link_ok(link, f"{key}.link"):
+        if link is not None and not self._link_ok(name, link):
             return None
         calibration = merged.get("calibration")
         return AgentSpec(
@@ -531,12 +544,12 @@ class _Loader:
             mocap_body=merged.get("mocap_body") or name,
         )
 
-    def _link_ok(self, url: str, key: str) -> bool:
-        """The link URL is complete and its device exists (as a run would open it)."""
+    def _link_ok(self, name: str, url: str) -> bool:
+        """Agent ``name``'s link URL is complete and its device exists (as a run opens it)."""
         try:
-            validate_link_url(url)
+            validate_link_url(url, local=name not in self.remote)
         except LinkUrlError as exc:
-            self.problem(key, str(exc))
+            self.problem(f"agents.{name}.link", str(exc))
             return False
         return True
 
@@ -551,7 +564,7 @@ class _Loader:
                 self.problem(f"--link {name}", f"link URL must be a non-empty string: {url!r}")
             elif name in self.parts.agents:
                 spec = self.parts.agents[name]
-                if self._link_ok(url, f"agents.{name}.link"):
+                if self._link_ok(name, url):
                     self.parts.agents[name] = replace(spec, link=url.strip())
                 else:
                     del self.parts.agents[name]

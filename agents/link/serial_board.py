@@ -803,8 +803,9 @@ def board_from_url(url: str, **options: Any) -> SerialBoard:
     return SerialBoard(url, port_url=port_url, **from_url, **options)
 
 
-def validate_url(url: str) -> None:
-    """Check a serial link URL without opening it: options, URL syntax, the device exists.
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check a serial link URL without opening it: options, URL syntax, and (``local``: the
+    board is plugged into this machine) that the device exists.
 
     ``socket://`` and ``rfc2217://`` URLs are syntax-checked only (``HOST:PORT``): whether the
     server answers is known only when the run opens it.
@@ -815,7 +816,8 @@ def validate_url(url: str) -> None:
     """
     port_url, _ = split_url_options(url)
     if "://" not in port_url:
-        if os.name == "posix" and port_url.startswith("/") and not os.path.exists(port_url):
+        posix_path = os.name == "posix" and port_url.startswith("/")
+        if local and posix_path and not os.path.exists(port_url):
             from serial.tools.list_ports import comports  # noqa: PLC0415 - only on this error
 
             present = sorted(port.device for port in comports())

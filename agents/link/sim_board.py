@@ -621,6 +621,12 @@ def parse_url(url: str) -> tuple[str, dict[str, Any]]:
     return profile, options
 
 
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check ``url`` as :func:`board_from_url` would (``local`` changes nothing here)."""
+    del local
+    parse_url(url)
+
+
 def board_from_url(url: str, **options: Any) -> SimBoard:
     """Build a :class:`SimBoard` from ``sim://[profile][?board_id=N]``.
 

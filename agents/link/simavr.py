@@ -485,13 +485,16 @@ def parse_url(url: str) -> tuple[str, dict[str, Any]]:
     return profile, options
 
 
-def validate_url(url: str) -> None:
-    """Check ``url`` as :func:`board_from_url` would, and that its firmware is built.
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check ``url`` as :func:`board_from_url` would, and (``local``: the board runs on this
+    machine) that its firmware is built.
 
     Raises:
         LinkUrlError: a bad URL, or the firmware/harness of its profile is not built.
     """
     profile, _ = parse_url(url)
+    if not local:
+        return
     try:
         locate_build(profile)
     except SimulatorError as exc:

@@ -39,7 +39,7 @@ _PLANNED_SCHEMES: dict[str, str] = {
 _SERIAL_FACTORY = "hilswarm.agents.link.serial_board:board_from_url"
 #: kind -> "module:function" checking a URL of that kind completely without opening anything.
 _VALIDATORS: dict[str, str] = {
-    "sim": "hilswarm.agents.link.sim_board:parse_url",
+    "sim": "hilswarm.agents.link.sim_board:validate_url",
     "simavr": "hilswarm.agents.link.simavr:validate_url",
     "serial": "hilswarm.agents.link.serial_board:validate_url",
 }
@@ -73,12 +73,14 @@ def link_scheme(url: str) -> str:
     raise LinkUrlError(f"link URL {url!r}: unknown scheme {scheme!r}; known schemes: {known}")
 
 
-def validate_link_url(url: str) -> str:
+def validate_link_url(url: str, *, local: bool = True) -> str:
     """Check ``url`` as far as possible without opening it; return its kind (:func:`link_scheme`).
 
     Beyond the scheme: the board profile and query options (``sim://mega`` is refused), a
     serial device path exists, ``socket://`` / ``rfc2217://`` have ``HOST:PORT``, the firmware of
     a ``simavr://`` profile is built. The transports use the same parsers when they open.
+    ``local=False`` (the board is on another machine, e.g. ``hilswarm run --remote``) skips
+    what only that machine can know: the device and the firmware build.
 
     Raises:
         LinkUrlError: what is wrong with ``url``.
@@ -86,7 +88,7 @@ def validate_link_url(url: str) -> str:
     kind = link_scheme(url)
     validator = _VALIDATORS.get(kind)
     if validator is not None:
-        _load(validator)(url.strip())
+        _load(validator)(url.strip(), local=local)
     return kind
 
 

@@ -310,3 +310,13 @@ def test_graph_command(capsys: pytest.CaptureFixture[str]) -> None:
     assert data["in_degree"]["a0"] == 3 and data["strongly_connected"]
     assert main(["graph", str(DATA / "diagonal.toml")]) == 2
     assert "graph.adjacency[1][1]" in capsys.readouterr().err
+
+
+def test_remote_agents_links_are_not_checked_for_local_devices(tmp_path: Path) -> None:
+    text = (DATA / "shared_serial.toml").read_text()
+    text = text.replace('link = "socket://127.0.0.1:5760"', 'link = "/dev/ttyUSB9"', 1)
+    path = tmp_path / "remote.toml"
+    path.write_text(text)
+    assert "does not exist" in " ".join(p.message for p in check_file(path).problems)
+    # the leader's board is plugged into another machine (hilswarm run --remote leader)
+    assert check_file(path, remote=["leader"]).ok
