@@ -127,7 +127,8 @@ class Agent:
     Args:
         config: what to build and where it sits in the graph.
         endpoints: Zenoh endpoints to connect to (the orchestrator's router or a zenohd).
-        hardware_factory: builds vehicle/board/controller (tests may pass their own).
+        hardware_factory: builds vehicle/board/controller from the config and the bus
+            endpoints (keyword ``endpoints``; tests may pass their own).
         clock: monotonic clock [s] used for tick timings.
         startup_timeout_s: bound on waiting for the bus and the manager.
     """
@@ -137,7 +138,7 @@ class Agent:
         config: AgentConfig,
         endpoints: Sequence[str],
         *,
-        hardware_factory: Callable[[AgentConfig], AgentHardware] = build_hardware,
+        hardware_factory: Callable[..., AgentHardware] = build_hardware,
         clock: Callable[[], float] = time.perf_counter,
         startup_timeout_s: float = DEFAULT_STARTUP_TIMEOUT_S,
     ) -> None:
@@ -371,7 +372,7 @@ class Agent:
         try:
             session = self._open_bus()
             self.lifecycle.connect()
-            self.use_hardware(self._hardware_factory(self.config))
+            self.use_hardware(self._hardware_factory(self.config, endpoints=self.endpoints))
             self.lifecycle.configure()
             self._declare(session)
             self.lifecycle.arm(detail=f"neighbours: {', '.join(self.config.neighbours) or '-'}")

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -122,11 +123,13 @@ class AgentHardware:
     model: Any
 
 
-def build_hardware(config: AgentConfig) -> AgentHardware:
+def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> AgentHardware:
     """Build the vehicle, open/configure its board and build the controller's ControlModel.
 
-    For ``sim://`` and ``simavr://`` links the board drives the vehicle's own simulated
-    hardware (``vehicle.simulated_hardware``) and a simulated mocap follows that plant.
+    For ``sim://`` and ``simavr://`` links (and ``xbee://...?sim=...``, a simulated robot behind
+    the simulated radio) the board drives the vehicle's own simulated hardware
+    (``vehicle.simulated_hardware``) and a simulated mocap follows that plant. ``endpoints``
+    are the agent's bus endpoints, through which an ``xbee://`` board reaches the gateway.
     """
     vehicle_cls = resolve_vehicle(config.vehicle)
     vehicle = vehicle_cls(
@@ -142,7 +145,7 @@ def build_hardware(config: AgentConfig) -> AgentHardware:
         calibration.prepare_inverse()
     board = None
     if getattr(vehicle, "needs_board", True):
-        board = _open_board(config, vehicle)
+        board = _open_board(config, vehicle, endpoints)
     controller = resolve_controller(config.controller)()
     model = ControlModel(
         controller,
@@ -154,18 +157,25 @@ def build_hardware(config: AgentConfig) -> AgentHardware:
     return AgentHardware(vehicle=vehicle, board=board, model=model)
 
 
-def _open_board(config: AgentConfig, vehicle: Any) -> Any:
+def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()) -> Any:
     if not config.link:
         raise AgentConfigError(
             f"agent {config.name!r}: vehicle {config.vehicle!r} needs a board but the "
             'experiment gives no link URL (e.g. link = "sim://")'
         )
     options: dict[str, Any] = {}
-    if link_scheme(config.link) in ("sim", "simavr"):
+    scheme = link_scheme(config.link)
+    if scheme == "xbee":
+        options = {
+            "endpoints": list(endpoints),
+            "experiment": config.experiment,
+            "agent": config.name,
+        }
+    if scheme in ("sim", "simavr") or (scheme == "xbee" and "sim=" in config.link):
         plant = vehicle.simulated_hardware(
             initial_state=list(config.initial_state) or None, dt=config.dt
         )
-        options = {"plant": plant, "dt": config.dt}
+        options.update(plant=plant, dt=config.dt)
         if plant is not None:
             from hilswarm.agents.sim.mocap import SimulatedMocap  # noqa: PLC0415 - sim only
 

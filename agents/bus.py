@@ -20,6 +20,11 @@ Key space, one experiment per prefix ``hilswarm/<exp>/``:
   :data:`TELEMETRY_PERIOD_S` of wall time and once more when the agent goes safe or stops.
 * ``agent/<name>/telemetry/<channel>`` — a single telemetry vector (:func:`encode_vector`),
   for tools that publish one; agents publish batches.
+* ``agent/<name>/link/tx``, ``agent/<name>/link/rx`` — wire-protocol bytes between an agent
+  with an ``xbee://`` link and the XBee gateway; ``agent/<name>/link/robot/{in,out}`` — the UART
+  of its simulated robot behind the simulated air.
+* ``gateway/status``, ``gateway/stats`` — the XBee gateway's state (JSON) and per-tick radio
+  figures.
 * ``alive/<name>`` — the agent's liveliness token (kill -9 is seen when it disappears).
 
 Agents subscribe only to explicit keys, never wildcards, so a non-neighbour's output is never
@@ -172,6 +177,24 @@ class BusKeys:
         """Key of agent ``name``'s telemetry channel ``channel``."""
         check_key_name(channel, what="telemetry channel")
         return self.agent(name, f"telemetry/{channel}")
+
+    def link_tx(self, name: str) -> str:
+        """Key of the wire-protocol bytes agent ``name`` sends to its board via the gateway."""
+        return self.agent(name, "link/tx")
+
+    def link_rx(self, name: str) -> str:
+        """Key of the wire-protocol bytes the gateway received from agent ``name``'s board."""
+        return self.agent(name, "link/rx")
+
+    def link_robot(self, name: str, direction: str) -> str:
+        """Key of a simulated robot's UART bytes (``direction``: ``in`` to it, ``out`` from it)."""
+        if direction not in ("in", "out"):
+            raise BusKeyError(f"robot UART direction must be 'in' or 'out', got {direction!r}")
+        return self.agent(name, f"link/robot/{direction}")
+
+    def gateway(self, leaf: str) -> str:
+        """Key ``hilswarm/<exp>/gateway/<leaf>`` (``status``, ``stats``)."""
+        return f"{self.prefix}/gateway/{leaf}"
 
     def alive(self, name: str) -> str:
         """Key of agent ``name``'s liveliness token."""

@@ -58,6 +58,7 @@ from hilswarm.orchestrator.experiment import (
 from hilswarm.orchestrator.graph_facts import GraphFacts, graph_facts
 from hilswarm.orchestrator.problems import ExperimentError, Problem
 from hilswarm.orchestrator.schema import ExperimentSection
+from hilswarm.orchestrator.xbee_check import check_gateway
 
 logger = logging.getLogger(__name__)
 
@@ -133,6 +134,9 @@ def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
     output_sizes = {name: check.n_outputs for name, check in built.items()}
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
+    if parts.experiment is not None:  # the radio budget needs the whole experiment
+        vehicles = {name: check.vehicle for name, check in built.items()}
+        check_gateway(parts.experiment, vehicles, report.problems, report.warnings)
 
 
 # -- experiment-wide checks ---------------------------------------------------------------------

@@ -32,6 +32,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "replay a recording through its controllers (or changed ones) and report divergence",
     ),
     "agent": ("agent", "start one agent process that joins a running experiment"),
+    "gateway": ("gateway", "run the XBee gateway of an experiment (joins a running bus)"),
+    "xbee": ("xbee", "XBee radios: node discovery (scan) and configuration (setup)"),
     "new": ("new", "write a skeleton vehicle or device with its test and experiment file"),
     "calibrate": ("calibrate", "fit and plot a calibration table from measured pairs"),
 }

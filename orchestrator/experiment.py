@@ -158,7 +158,8 @@ class Experiment:
         max_late_fraction: realtime: late ticks above this fraction of all ticks make the run
             degraded (0..1).
         mocap: the ``[mocap]`` table (motion capture), or ``None``.
-        gateway: the ``[gateway]`` table (XBee gateway), or ``None``.
+        gateway: the ``[gateway]`` table (XBee gateway) as a
+            :class:`~hilswarm.agents.xbee.config.GatewayConfig`, or ``None``.
     """
 
     name: str
@@ -178,7 +179,7 @@ class Experiment:
     on_recording_failure: Literal["stop", "continue"] = "stop"
     max_late_fraction: float = DEFAULT_MAX_LATE_FRACTION
     mocap: MocapSection | None = None
-    gateway: GatewaySection | None = None
+    gateway: Any = None
 
     @property
     def dt(self) -> float:
@@ -238,7 +239,8 @@ class ExperimentParts:
         agents: agent name -> spec, for every agent whose table (with ``[defaults]``) is valid.
         graph: ``(names, adjacency, graph file or None)`` when the graph is valid.
         mocap: the valid ``[mocap]`` table, or ``None``.
-        gateway: the valid ``[gateway]`` table, or ``None``.
+        gateway: the valid ``[gateway]`` table as a
+            :class:`~hilswarm.agents.xbee.config.GatewayConfig`, or ``None``.
         experiment: the experiment, when there is no problem at all.
     """
 
@@ -248,7 +250,7 @@ class ExperimentParts:
     agents: dict[str, AgentSpec] = field(default_factory=dict)
     graph: tuple[list[str], np.ndarray, Path | None] | None = None
     mocap: MocapSection | None = None
-    gateway: GatewaySection | None = None
+    gateway: Any = None
     experiment: Experiment | None = None
 
     @property
@@ -392,7 +394,7 @@ class _Loader:
                 self.problem(key, f"unknown key; expected one of {known}")
         settings = self._settings(overrides)
         mocap = self.parts.mocap = self._section("mocap", MocapSection)
-        gateway = self.parts.gateway = self._section("gateway", GatewaySection)
+        gateway = self.parts.gateway = self._gateway()
         agent_tables = self._table("agents", required=True)
         too_many = len(agent_tables) > self.max_agents
         if too_many:
@@ -425,6 +427,22 @@ class _Loader:
             mocap=mocap,
             gateway=gateway,
         )
+
+    def _gateway(self) -> Any:
+        """``[gateway]`` as a GatewayConfig (``None`` when absent)."""
+        section = self._section("gateway", GatewaySection)
+        if section is None:
+            return None
+        from hilswarm.agents.xbee.config import (  # noqa: PLC0415 - only files with [gateway]
+            GatewayConfig,
+            GatewayConfigError,
+        )
+
+        try:
+            return GatewayConfig.from_table(section.model_dump())
+        except GatewayConfigError as exc:
+            self.problem("gateway", str(exc))
+            return None
 
     def _too_many(self, key: str, count: int) -> None:
         self.problem(

@@ -202,14 +202,22 @@ class MocapSection(_Table):
 
 
 class GatewaySection(_Table):
-    """``[gateway]``: the XBee API-mode gateway that carries ``xbee://`` links."""
+    """``[gateway]``: the XBee API-mode gateway that carries ``xbee://`` links (read into a
+    :class:`hilswarm.agents.xbee.config.GatewayConfig`, which adds the XBee baud-rate rule)."""
 
-    port: NonEmpty = Field(examples=["/dev/ttyUSB0"])
-    """The gateway XBee's serial port: a device or any pyserial URL."""
-    baud: int = Field(9600, gt=0)
-    """Baud rate of the gateway's serial port [bit/s] (XBee factory default 9600)."""
-    api_mode: Literal[1, 2] = 2
-    """XBee API mode: 1 (unescaped) or 2 (escaped, AP = 2)."""
+    port: NonEmpty = "sim"
+    """The coordinator XBee's serial port: a device or any pyserial URL; "sim" for the
+    simulated coordinator and air."""
+    baud: int = Field(115200, gt=0)
+    """Host UART rate of the coordinator [baud]: an XBee rate (9600 ... 230400)."""
+    api_mode: Literal[1, 2] = 1
+    """XBee API mode: 1 (API) or 2 (API with escaping, AP = 2)."""
+    family: Literal["802.15.4", "zigbee"] = "802.15.4"
+    """port = "sim": the frame family the simulated radios speak."""
+    seed: int = Field(0, ge=0)
+    """port = "sim": seed of the simulated air (backoffs, losses)."""
+    loss: float = Field(0.0, ge=0.0, le=1.0)
+    """port = "sim": loss probability of each frame on every link (0..1)."""
 
 
 class ExperimentFile(_Table):

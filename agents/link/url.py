@@ -7,8 +7,8 @@ Known schemes:
 
 * ``sim://[profile][?options]`` — in-process simulated board (:mod:`.sim_board`).
 * ``simavr://[profile][?options]`` — the real firmware in the AVR simulator (:mod:`.simavr`).
-* ``xbee://<address>`` — reserved for a board behind the XBee API-mode gateway (not shipped yet:
-  refused with a clear message).
+* ``xbee://<64-bit address>`` — a board behind the XBee API-mode gateway, reached over the bus
+  (:mod:`hilswarm.agents.xbee.transport`; needs ``session=``, ``experiment=``, ``agent=``).
 * anything else pyserial understands — a serial port running the hilswarm firmware
   (``/dev/ttyUSB0``, ``COM5``, ``loop://``, ``socket://host:port``, ``rfc2217://host:port``).
 """
@@ -29,11 +29,7 @@ BoardFactory = Callable[..., Board]
 _SCHEMES: dict[str, str] = {
     "sim": "hilswarm.agents.link.sim_board:board_from_url",
     "simavr": "hilswarm.agents.link.simavr:board_from_url",
-}
-#: Schemes that are designed (docs) but whose transport this version does not ship yet.
-_PLANNED_SCHEMES: dict[str, str] = {
-    "xbee": "the XBee API-mode gateway is not part of this release; use one serial port per "
-    "robot (/dev/ttyUSB0, ...) or a simulated board (sim://, simavr://)",
+    "xbee": "hilswarm.agents.xbee.transport:board_from_url",
 }
 #: pyserial URL schemes (and bare device paths) go to the serial transport.
 _SERIAL_FACTORY = "hilswarm.agents.link.serial_board:board_from_url"
@@ -42,6 +38,7 @@ _VALIDATORS: dict[str, str] = {
     "sim": "hilswarm.agents.link.sim_board:validate_url",
     "simavr": "hilswarm.agents.link.simavr:validate_url",
     "serial": "hilswarm.agents.link.serial_board:validate_url",
+    "xbee": "hilswarm.agents.xbee.config:validate_url",
 }
 _PYSERIAL_SCHEMES = {"loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110"}
 
@@ -63,8 +60,6 @@ def link_scheme(url: str) -> str:
             "a serial device such as /dev/ttyUSB0, or a pyserial URL (loop://, socket://...)"
         )
     scheme = urlsplit(url).scheme.lower()
-    if scheme in _PLANNED_SCHEMES:
-        raise LinkUrlError(f"link URL {url!r}: {_PLANNED_SCHEMES[scheme]}")
     if scheme in _SCHEMES:
         return scheme
     if scheme in _PYSERIAL_SCHEMES:

@@ -180,8 +180,11 @@ def test_mocap_and_gateway_tables(tmp_path: Path) -> None:
     assert "'kinect' is not one of 'vicon', 'optitrack'" in found["mocap.system"]
     assert "0 Hz is out of range; expected rate_hz > 0" in found["mocap.rate_hz"]
     assert found["mocap.colour"].startswith("unknown key; expected one of system, host")
-    assert found["gateway.port"].startswith("missing")
     assert "3 is not one of 1, 2" in found["gateway.api_mode"]
+    found = problems(write(tmp_path, rest='[gateway]\nport = ""\nbaud = 1000\n'))
+    assert found["gateway.port"] == "must not be empty"
+    found = problems(write(tmp_path, rest="[gateway]\nbaud = 1000\n"))
+    assert "not an XBee rate" in found["gateway"]
 
 
 def test_overrides_use_the_same_rules(tmp_path: Path) -> None:

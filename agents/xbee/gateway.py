@@ -1,0 +1,419 @@
+"""The XBee gateway: one coordinator radio in API mode serves every ``xbee://`` robot.
+
+The gateway owns the coordinator's serial port. Agents reach it over the experiment's bus:
+
+* an agent's board (:mod:`.transport`) puts each wire-protocol frame it sends on
+  ``agent/<name>/link/tx``; the gateway sends it as a TX Request (0x00, or 0x10 on a ZigBee /
+  DigiMesh radio) to that robot's 64-bit address;
+* what a robot sends back arrives as RX Packets (0x80 / 0x90): their RF data go, unchanged, to
+  ``agent/<name>/link/rx``. The robots' radios are in transparent mode, so the firmware and the
+  agent's :class:`~hilswarm.agents.link.serial_board.SerialBoard` logic (seq numbers, retries,
+  CRC) are exactly those of a USB link.
+
+Bus callbacks only hand the bytes to the writer thread's queue. A reader thread decodes the
+port (:class:`~.api_frames.ApiFrameDecoder`) and publishes. TX Status frames are counted per
+robot (delivered, failed, retries): a robot out of range misses its ticks — its agent's board
+times out and the agent goes safe — while the others go on.
+
+Start-up (and after every reconnection, so that a re-plugged coordinator is configured again):
+the gateway asks the radio for ``HV``/``VR`` (its frame family), and sets ``AP`` when the
+radio answers in the other API mode. A lost port (coordinator unplugged) is re-opened every
+:data:`REOPEN_S`; meanwhile the agents' boards time out and their agents go safe.
+
+Every ``stats_period_s`` (and on every change of state) it publishes JSON on
+``gateway/stats``: per direction bytes and UART load, frames, TX failures and retries, and per
+robot the last RSSI [dBm]; ``gateway/status`` carries ``connected`` / ``disconnected``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import serial
+import zenoh
+from hilswarm.agents import bus
+from hilswarm.agents.errors import HilswarmError
+from hilswarm.agents.xbee.air import AirParams, uart_s
+from hilswarm.agents.xbee.api_frames import (
+    ApiFrame,
+    ApiFrameDecoder,
+    ApiMode,
+    AtCommand,
+    AtResponse,
+    FrameFamily,
+    ReceivePacket,
+    Rx64Packet,
+    TransmitRequest,
+    TransmitStatus,
+    Tx64Request,
+    TxStatus,
+    encode_frame,
+)
+from hilswarm.agents.xbee.config import GatewayConfig, format_address
+
+_log = logging.getLogger(__name__)
+
+#: Pause between two attempts to re-open a lost coordinator port [s].
+REOPEN_S = 0.2
+#: How long the start-up AT exchange waits for each answer [s].
+AT_TIMEOUT_S = 1.0
+_POLL_S = 0.02
+
+
+class GatewayError(HilswarmError, ConnectionError):
+    """The coordinator cannot be opened or does not answer as an XBee in API mode."""
+
+
+@dataclass
+class RobotStats:
+    """Counters of one robot seen by the gateway."""
+
+    tx_frames: int = 0
+    tx_bytes: int = 0
+    rx_frames: int = 0
+    rx_bytes: int = 0
+    delivered: int = 0
+    tx_failures: int = 0
+    retries: int = 0
+    rssi_dbm: int | None = None
+
+
+@dataclass
+class GatewayStats:
+    """Counters of the gateway (host UART bytes both ways, frames, per robot)."""
+
+    uart_out_bytes: int = 0
+    uart_in_bytes: int = 0
+    reconnections: int = 0
+    dropped_frames: int = 0
+    robots: dict[str, RobotStats] = field(default_factory=dict)
+
+
+class Gateway:
+    """The gateway process's work (see the module docstring).
+
+    Args:
+        config: ``[gateway]`` settings; ``config.port`` is opened with pyserial (a simulated
+            coordinator's pty path when the caller started one).
+        keys: the experiment's bus keys.
+        robots: agent name -> 64-bit address of its robot's radio.
+        session: the bus session (the gateway's own principal).
+        port_url: what to open instead of ``config.port`` (the simulated coordinator's path).
+        stats_period_s: period of ``gateway/stats`` [s].
+        clock: monotonic clock [s].
+    """
+
+    def __init__(
+        self,
+        config: GatewayConfig,
+        keys: bus.BusKeys,
+        robots: Mapping[str, int],
+        session: zenoh.Session,
+        *,
+        port_url: str | None = None,
+        stats_period_s: float = 0.5,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.config = config
+        self.keys = keys
+        self.robots = dict(robots)
+        self.by_address = {address: name for name, address in self.robots.items()}
+        self.session = session
+        self.port_url = port_url or config.port
+        self.stats_period_s = stats_period_s
+        self.clock = clock
+        self.family = FrameFamily.IEEE_802_15_4
+        self.stats = GatewayStats(robots={name: RobotStats() for name in self.robots})
+        self.connected = threading.Event()
+        self._mode = ApiMode(config.api_mode)
+        self._decoder = ApiFrameDecoder(self._mode)
+        self._port: serial.SerialBase | None = None
+        self._port_lock = threading.Lock()
+        self._outbox: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
+        self._frame_id = 0
+        self._pending: dict[int, str] = {}  # frame id -> robot name
+        self._at_answers: queue.SimpleQueue[AtResponse] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._entities: list[Any] = []
+        self._rx_pubs: dict[str, Any] = {}
+        self._max_payload = AirParams().max_payload
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self) -> Gateway:
+        """Open the coordinator (raises :class:`GatewayError`), declare the bus entities and
+        start the threads."""
+        self._open_port()
+        for name in self.robots:
+            self._rx_pubs[name] = self.session.declare_publisher(
+                self.keys.link_rx(name), **bus.TICK_PATH_QOS
+            )
+            self._entities.append(
+                self.session.declare_subscriber(
+                    self.keys.link_tx(name), lambda s, n=name: self._on_tx(n, s)
+                )
+            )
+        self._status_pub = self.session.declare_publisher(self.keys.gateway("status"))
+        self._stats_pub = self.session.declare_publisher(self.keys.gateway("stats"))
+        for target, name in (
+            (self._write_loop, "xbee-gateway-tx"),
+            (self._read_loop, "xbee-gateway-rx"),
+            (self._stats_loop, "xbee-gateway-stats"),
+        ):
+            thread = threading.Thread(target=target, name=name, daemon=True)
+            thread.start()
+            self._threads.append(thread)
+        self._publish_status("connected")
+        return self
+
+    def stop(self) -> None:
+        """Stop the threads, undeclare and close the port. Idempotent."""
+        self._stop.set()
+        self._outbox.put(None)
+        for thread in self._threads:
+            thread.join(timeout=3.0)
+        self._threads.clear()
+        for entity in self._entities:
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
+        self._entities.clear()
+        self._close_port()
+
+    def __enter__(self) -> Gateway:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------ port
+    def _open_port(self) -> None:
+        try:
+            port = serial.serial_for_url(
+                self.port_url, baudrate=self.config.baud, timeout=_POLL_S, write_timeout=1.0
+            )
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise GatewayError(f"cannot open the coordinator at {self.port_url!r}: {exc}") from exc
+        with self._port_lock:
+            self._port = port
+        self._decoder.reset()
+        try:
+            self._configure_radio()
+        except GatewayError:
+            self._close_port()
+            raise
+        self.connected.set()
+
+    def _close_port(self) -> None:
+        self.connected.clear()
+        with self._port_lock:
+            port, self._port = self._port, None
+        if port is not None:
+            with contextlib.suppress(serial.SerialException, OSError):
+                port.close()
+
+    def _configure_radio(self) -> None:
+        """Ask the radio for its versions (frame family) and make sure ``AP`` is ours."""
+        hv = self._at_query("HV")
+        if hv is None:  # perhaps the radio is in the other API mode: switch it to ours
+            self._set_api_mode()
+            hv = self._at_query("HV")
+        vr = self._at_query("VR")
+        if hv is None or vr is None:
+            raise GatewayError(
+                f"the coordinator at {self.port_url!r} does not answer AT commands in API mode "
+                f"{int(self._mode)} at {self.config.baud} baud; put it in API mode with "
+                "`hilswarm xbee setup` (or check port, baud and api_mode in [gateway])"
+            )
+        # XBee 802.15.4 firmware versions start with 1 on XB24-A hardware (0x17/0x18);
+        # ZigBee (2x) and DigiMesh (8x) use the 0x10/0x90/0x8B frames.
+        self.family = (
+            FrameFamily.IEEE_802_15_4
+            if hv.value[:1] in (b"\x17", b"\x18") and vr.value[:1] < b"\x80"
+            else FrameFamily.ZIGBEE
+        )
+        _log.info(
+            "coordinator %s: HV %s VR %s, %s frames, API mode %d",
+            self.port_url,
+            hv.value.hex(),
+            vr.value.hex(),
+            self.family.value,
+            self._mode,
+        )
+
+    def _set_api_mode(self) -> None:
+        """Try the other API mode; if the radio answers there, set ``AP`` to ours."""
+        ours = self._mode
+        other = ApiMode.ESCAPED if ours == ApiMode.API else ApiMode.API
+        self._mode = self._decoder.mode = other
+        try:
+            if self._at_query("HV") is not None:
+                _log.info("coordinator answered in API mode %d; setting AP=%d", other, ours)
+                self._write_frame(AtCommand(0xF1, "AP", bytes((int(ours),))))
+                self._write_frame(AtCommand(0xF2, "WR"))
+                self._at_query("AP")  # its answer (in the old mode) drains here
+        finally:
+            self._mode = self._decoder.mode = ours
+
+    def _at_query(self, command: str) -> AtResponse | None:
+        """Send a local AT query and wait for its answer (start-up only: the reader is not
+        running yet, so read here)."""
+        frame_id = 0xF0
+        self._write_frame(AtCommand(frame_id, command))
+        deadline = self.clock() + AT_TIMEOUT_S
+        while self.clock() < deadline:
+            for frame in self._read_frames():
+                if isinstance(frame, AtResponse) and frame.command == command:
+                    return frame if frame.status == 0 else None
+        return None
+
+    def _read_frames(self) -> list[ApiFrame]:
+        with self._port_lock:
+            port = self._port
+        if port is None:
+            raise serial.SerialException("port closed")
+        data = port.read(1)
+        if data and port.in_waiting:
+            data += port.read(port.in_waiting)
+        if not data:
+            return self._decoder.idle() if self._decoder.pending else []
+        self.stats.uart_in_bytes += len(data)
+        return self._decoder.feed(data)
+
+    def _write_frame(self, frame: ApiFrame) -> None:
+        wire = encode_frame(frame, self._mode)
+        with self._port_lock:
+            port = self._port
+            if port is None:
+                raise serial.SerialException("port closed")
+            port.write(wire)
+        self.stats.uart_out_bytes += len(wire)
+
+    # ------------------------------------------------------------------ bus -> radio
+    def _on_tx(self, name: str, sample: zenoh.Sample) -> None:
+        """Bus callback: hand the bytes to the writer thread (never blocks)."""
+        self._outbox.put((name, sample.payload.to_bytes()))
+
+    def _next_frame_id(self) -> int:
+        self._frame_id = self._frame_id % 255 + 1  # 1..255 (0 would ask for no status)
+        return self._frame_id
+
+    def _write_loop(self) -> None:
+        while not self._stop.is_set():
+            item = self._outbox.get()
+            if item is None:
+                return
+            if not self.connected.is_set():
+                continue  # coordinator away: the frame is lost, the agent's board retries
+            name, data = item
+            address = self.robots[name]
+            robot = self.stats.robots[name]
+            for start in range(0, len(data), self._max_payload):
+                chunk = data[start : start + self._max_payload]
+                frame_id = self._next_frame_id()
+                self._pending[frame_id] = name
+                frame: ApiFrame = (
+                    Tx64Request(frame_id, address, chunk)
+                    if self.family == FrameFamily.IEEE_802_15_4
+                    else TransmitRequest(frame_id, address, chunk)
+                )
+                try:
+                    self._write_frame(frame)
+                except (serial.SerialException, OSError) as exc:
+                    _log.debug("gateway: write failed (%s); the reader reconnects", exc)
+                    break
+                robot.tx_frames += 1
+                robot.tx_bytes += len(chunk)
+
+    # ------------------------------------------------------------------ radio -> bus
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                frames = self._read_frames()
+            except (serial.SerialException, OSError) as exc:
+                if self._stop.is_set():
+                    return
+                self._lost(str(exc))
+                continue
+            for frame in frames:
+                self._dispatch(frame)
+
+    def _dispatch(self, frame: ApiFrame) -> None:
+        if isinstance(frame, Rx64Packet | ReceivePacket):
+            name = self.by_address.get(frame.source)
+            if name is None:
+                self.stats.dropped_frames += 1
+                _log.debug(
+                    "gateway: data from unknown radio %s dropped", format_address(frame.source)
+                )
+                return
+            robot = self.stats.robots[name]
+            robot.rx_frames += 1
+            robot.rx_bytes += len(frame.data)
+            if isinstance(frame, Rx64Packet):
+                robot.rssi_dbm = frame.rssi_dbm
+            self._rx_pubs[name].put(frame.data)
+        elif isinstance(frame, TxStatus | TransmitStatus):
+            name = self._pending.pop(frame.frame_id, None)
+            if name is None:
+                return
+            robot = self.stats.robots[name]
+            if frame.status == 0:
+                robot.delivered += 1
+            else:
+                robot.tx_failures += 1
+            if isinstance(frame, TransmitStatus):
+                robot.retries += frame.retries
+        elif isinstance(frame, AtResponse):
+            self._at_answers.put(frame)
+
+    def _lost(self, cause: str) -> None:
+        """The coordinator went away: reopen until it is back (or the gateway stops)."""
+        _log.warning("gateway: coordinator %s lost (%s); reconnecting", self.port_url, cause)
+        self._close_port()
+        self._pending.clear()
+        self._publish_status("disconnected", cause)
+        while not self._stop.wait(REOPEN_S):
+            try:
+                self._open_port()
+            except GatewayError as exc:
+                _log.debug("gateway: reopen failed: %s", exc)
+                continue
+            self.stats.reconnections += 1
+            self._publish_status("connected", "reconnected; radio configuration re-applied")
+            return
+
+    # ------------------------------------------------------------------ figures
+    def _publish_status(self, state: str, detail: str = "") -> None:
+        payload = {"state": state, "detail": detail, "port": self.port_url}
+        with contextlib.suppress(zenoh.ZError):
+            self._status_pub.put(json.dumps(payload))
+
+    def snapshot(self) -> dict[str, Any]:
+        """The counters as a JSON-ready dict (what ``gateway/stats`` carries)."""
+        data = asdict(self.stats)
+        data["connected"] = self.connected.is_set()
+        data["family"] = self.family.value
+        return data
+
+    def _stats_loop(self) -> None:
+        last = self.snapshot()
+        last_t = self.clock()
+        while not self._stop.wait(self.stats_period_s):
+            now_t = self.clock()
+            snap = self.snapshot()
+            period = max(now_t - last_t, 1e-9)
+            capacity = period / uart_s(1, self.config.baud)  # bytes the UART carries per period
+            snap["period_s"] = period
+            snap["uart_out_load"] = (snap["uart_out_bytes"] - last["uart_out_bytes"]) / capacity
+            snap["uart_in_load"] = (snap["uart_in_bytes"] - last["uart_in_bytes"]) / capacity
+            with contextlib.suppress(zenoh.ZError):
+                self._stats_pub.put(json.dumps(snap))
+            last, last_t = snap, now_t

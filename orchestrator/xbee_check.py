@@ -1,0 +1,72 @@
+"""``hilswarm check`` for experiments with ``xbee://`` links: link URLs and the radio budget.
+
+The budget (:mod:`hilswarm.agents.xbee.budget`) uses each vehicle's pin configuration (every
+output written, every input sampled: the largest TICK it can send) and the ``[gateway]`` baud;
+over 100 % of the tick period is a problem (``check`` and ``run`` refuse the file), over 70 % a
+warning.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from hilswarm.agents.errors import LinkUrlError
+from hilswarm.agents.link.url import link_scheme
+from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.problems import Problem
+
+
+def check_gateway(
+    experiment: Experiment,
+    vehicles: Mapping[str, Any],
+    problems: list[Problem],
+    warnings: list[Problem],
+) -> None:
+    """Add the problems and warnings of ``experiment``'s XBee links and gateway budget."""
+    from hilswarm.agents.xbee.api_frames import FrameFamily  # noqa: PLC0415 - xbee files only
+    from hilswarm.agents.xbee.budget import (  # noqa: PLC0415
+        RobotTraffic,
+        budget_messages,
+        gateway_budget,
+        tick_frame_sizes,
+    )
+    from hilswarm.agents.xbee.config import GatewayConfig, parse_xbee_url  # noqa: PLC0415
+
+    robots: list[RobotTraffic] = []
+    addresses: dict[int, str] = {}
+    for spec in experiment.agents:
+        if spec.link is None:
+            continue
+        try:
+            if link_scheme(spec.link) != "xbee":
+                continue
+            link = parse_xbee_url(spec.link)
+        except LinkUrlError as exc:
+            problems.append(Problem(experiment.path, f"agents.{spec.name}.link", str(exc)))
+            continue
+        if link.address in addresses:
+            problems.append(
+                Problem(
+                    experiment.path,
+                    f"agents.{spec.name}.link",
+                    f"XBee address {link.address:016X} is also agent "
+                    f"{addresses[link.address]!r}'s; each robot has its own radio",
+                )
+            )
+        addresses[link.address] = spec.name
+        vehicle = vehicles.get(spec.name)
+        pins = getattr(getattr(vehicle, "pins", None), "pin_configs", None)
+        if pins is None:
+            continue  # its vehicle did not build: reported elsewhere
+        request, reply = tick_frame_sizes(pins())
+        robots.append(RobotTraffic(spec.name, request, reply))
+    if not robots:
+        return
+    config = experiment.gateway or GatewayConfig()
+    budget = gateway_budget(
+        robots, rate_hz=experiment.rate_hz, baud=config.baud, family=FrameFamily(config.family)
+    )
+    errors, notes = budget_messages(budget)
+    problems += [Problem(experiment.path, "gateway", message) for message in errors]
+    warnings += [Problem(experiment.path, "gateway", message) for message in notes]

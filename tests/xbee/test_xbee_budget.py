@@ -1,0 +1,95 @@
+"""The radio budget check: figures, thresholds and the messages of `hilswarm check`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hilswarm.agents.link.board import PinConfig, PinMode
+from hilswarm.agents.xbee.air import AirParams
+from hilswarm.agents.xbee.budget import (
+    RobotTraffic,
+    budget_messages,
+    gateway_budget,
+    tick_frame_sizes,
+)
+from hilswarm.orchestrator.checks import check_file
+
+REPO = Path(__file__).resolve().parents[2]
+FRISBEE = [
+    PinConfig(7, PinMode.DIGITAL_OUT),
+    PinConfig(8, PinMode.DIGITAL_OUT),
+    PinConfig(4, PinMode.DIGITAL_OUT),
+    PinConfig(12, PinMode.DIGITAL_OUT),
+    PinConfig(5, PinMode.PWM),
+    PinConfig(6, PinMode.PWM),
+    PinConfig(14, PinMode.ANALOG_IN),
+]
+
+
+def test_frame_sizes_by_hand() -> None:
+    # TICK: type, seq, dout u24, rmask u24, 2 x (pin, duty) = 12 B, CRC 2, COBS 1, delimiter 1
+    # reply: type, seq, status, time u32, 1 sample u16 = 9 B + 4
+    assert tick_frame_sizes(FRISBEE) == (16, 13)
+
+
+def test_unicast_budget_matches_the_issue_figures() -> None:
+    request, reply = tick_frame_sizes(FRISBEE)
+    robots = [RobotTraffic(f"r{i}", request, reply) for i in range(6)]
+    budget = gateway_budget(robots, rate_hz=20.0)
+    p = AirParams()
+    assert budget.air_s == pytest.approx(6 * (p.mean_unicast_s(16) + p.mean_unicast_s(13)))
+    assert budget.uart_out_s == pytest.approx(6 * (15 + 16) * 10 / 115200)
+    assert budget.uart_in_s == pytest.approx(6 * (15 + 13 + 7) * 10 / 115200)
+    # about 6 robots at 20 Hz fit by unicast: 6 fit (with a warning), 8 do not
+    errors, warnings = budget_messages(budget)
+    assert not errors and len(warnings) == 1 and warnings[0].startswith("XBee air")
+    errors, _ = budget_messages(gateway_budget(robots + robots[:2], rate_hz=20.0))
+    assert errors and "at most 7 robots" in errors[0]
+
+
+def test_overflow_message_says_what_by_how_much_and_what_to_change() -> None:
+    robots = [RobotTraffic(f"r{i}", 16, 13) for i in range(16)]
+    errors, _ = budget_messages(gateway_budget(robots, rate_hz=50.0, baud=9600))
+    text = "\n".join(errors)
+    assert "XBee air" in text and "XBee host UART out" in text and "XBee host UART in" in text
+    assert "over by" in text and "rate_hz <=" in text and "robots on this coordinator" in text
+    errors, _ = budget_messages(
+        gateway_budget([RobotTraffic(f"r{i}", 16, 13) for i in range(4)], rate_hz=50, baud=57600)
+    )
+    assert any("UART" in e and "[gateway] baud = 115200" in e for e in errors), errors
+
+
+def test_small_swarm_passes_quietly() -> None:
+    assert budget_messages(gateway_budget([RobotTraffic("a", 16, 13)], rate_hz=20.0)) == ([], [])
+
+
+def test_check_fails_an_experiment_over_budget(tmp_path: Path) -> None:
+    text = (REPO / "graphs" / "xbee_swarm.toml").read_text()
+    path = tmp_path / "fast.toml"
+    path.write_text(text.replace("rate_hz = 20.0", "rate_hz = 50.0"))
+    report = check_file(path)
+    assert [p.key for p in report.problems] == ["gateway"]
+    assert "XBee air" in report.problems[0].message
+    assert check_file(REPO / "graphs" / "xbee_swarm.toml").ok
+
+
+def test_check_reports_bad_xbee_links_and_shared_addresses(tmp_path: Path) -> None:
+    text = (REPO / "graphs" / "xbee_swarm.toml").read_text()
+    path = tmp_path / "bad.toml"
+    path.write_text(
+        text.replace("xbee://0013A20040000002", "xbee://0013A20040000001").replace(
+            "xbee://0013A20040000003?sim=sim://duemilanove", "xbee://nothex"
+        )
+    )
+    messages = [p.message for p in check_file(path).problems]
+    assert any("also agent 'leader'" in m for m in messages)
+    assert any("expected xbee://<64-bit address>" in m for m in messages)
+
+
+def test_bad_gateway_table(tmp_path: Path) -> None:
+    text = (REPO / "graphs" / "xbee_swarm.toml").read_text()
+    path = tmp_path / "bad.toml"
+    path.write_text(text.replace("api_mode = 2 ", "api_mode = 3 "))
+    messages = [p.message for p in check_file(path).problems]
+    assert any("api_mode = 3" in m for m in messages)
