@@ -18,7 +18,7 @@ from typing import Any
 from hilswarm.agents import bus
 from hilswarm.agents.control import ControlModel
 from hilswarm.agents.errors import HilswarmError
-from hilswarm.agents.link.url import board_for_url, link_scheme
+from hilswarm.agents.link.url import board_for_url, link_scheme, simulates_hardware
 from hilswarm.agents.registry import resolve_controller, resolve_vehicle
 
 #: Board watchdog when the experiment gives none [s].
@@ -171,7 +171,7 @@ def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()
             "experiment": config.experiment,
             "agent": config.name,
         }
-    if scheme in ("sim", "simavr") or (scheme == "xbee" and "sim=" in config.link):
+    if simulates_hardware(config.link):
         plant = vehicle.simulated_hardware(
             initial_state=list(config.initial_state) or None, dt=config.dt
         )

@@ -39,7 +39,7 @@ from hilswarm.agents.errors import (
     PinError,
     VehicleDefinitionError,
 )
-from hilswarm.agents.link.url import link_scheme
+from hilswarm.agents.link.url import link_scheme, simulates_hardware
 from hilswarm.agents.registry import (
     RegistryError,
     add_search_path,
@@ -62,10 +62,9 @@ from hilswarm.orchestrator.xbee_check import check_gateway
 
 logger = logging.getLogger(__name__)
 
-#: Link kinds that one process at a time can own (so two agents cannot share them).
-EXCLUSIVE_LINK_KINDS = ("serial", "xbee")
-#: Link kinds whose simulated board also simulates the motion capture (a pose source).
-POSE_LINK_KINDS = ("sim", "simavr")
+#: Link kinds that one process at a time can own (so two agents cannot share them); XBee
+#: addresses are compared by xbee_check (parsed, so two spellings of one address clash).
+EXCLUSIVE_LINK_KINDS = ("serial",)
 #: Runs longer than this many ticks are reported as a warning (recording size, run time).
 MANY_TICKS = 5_000_000
 
@@ -134,9 +133,8 @@ def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
     output_sizes = {name: check.n_outputs for name, check in built.items()}
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
-    if parts.experiment is not None:  # the radio budget needs the whole experiment
-        vehicles = {name: check.vehicle for name, check in built.items()}
-        check_gateway(parts.experiment, vehicles, report.problems, report.warnings)
+    vehicles = {name: check.vehicle for name, check in built.items()}
+    check_gateway(parts, vehicles, report.problems, report.warnings)
 
 
 # -- experiment-wide checks ---------------------------------------------------------------------
@@ -289,14 +287,14 @@ class _AgentCheck:
                 f"vehicle {spec.vehicle!r} needs no board; link {spec.link!r} is not used",
             )
         needs_pose = vehicle_cls is not None and getattr(vehicle_cls, "needs_pose", False)
-        if needs_pose and kind not in POSE_LINK_KINDS and self.parts.mocap is None:
+        if needs_pose and not simulates_hardware(spec.link) and self.parts.mocap is None:
             self.problem(
                 "link",
                 f"agent {spec.name!r}: vehicle {spec.vehicle!r} needs a pose from motion "
-                f"capture, but link {spec.link!r} gives none (only simulated boards, "
-                f"{', '.join(k + '://' for k in POSE_LINK_KINDS)}, simulate one) and the "
-                'experiment has no [mocap] table; add [mocap] with system = "vicon", '
-                '"optitrack", "qualisys", "vrpn" or "sim"',
+                f"capture, but link {spec.link!r} gives none (only simulated boards, sim://, "
+                "simavr://, xbee://...?sim=, simulate one) and the experiment has no [mocap] "
+                'table; add [mocap] with system = "vicon", "optitrack", "qualisys", "vrpn" '
+                'or "sim"',
             )
         return kind
 

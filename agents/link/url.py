@@ -68,6 +68,18 @@ def link_scheme(url: str) -> str:
     raise LinkUrlError(f"link URL {url!r}: unknown scheme {scheme!r}; known schemes: {known}")
 
 
+def simulates_hardware(url: str) -> bool:
+    """True when the board behind ``url`` is simulated with the vehicle's own simulated
+    hardware (``sim://``, ``simavr://``, ``xbee://...?sim=...``), which also simulates the
+    motion capture that gives the vehicle its pose.
+
+    Raises:
+        LinkUrlError: as :func:`link_scheme`.
+    """
+    kind = link_scheme(url)
+    return kind in ("sim", "simavr") or (kind == "xbee" and "sim=" in url)
+
+
 def validate_link_url(url: str, *, local: bool = True) -> str:
     """Check ``url`` as far as possible without opening it; return its kind (:func:`link_scheme`).
 
