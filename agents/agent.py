@@ -373,6 +373,7 @@ class Agent:
             session = self._open_bus()
             self.lifecycle.connect()
             self.use_hardware(self._hardware_factory(self.config, endpoints=self.endpoints))
+            self._attach_pose_source(session)
             self.lifecycle.configure()
             self._declare(session)
             self.lifecycle.arm(detail=f"neighbours: {', '.join(self.config.neighbours) or '-'}")
@@ -398,6 +399,14 @@ class Agent:
         finally:
             self._shutdown()
         return status
+
+    def _attach_pose_source(self, session: zenoh.Session) -> None:
+        """A bus pose source (mocap) subscribes to its body and waits for its first pose."""
+        source = getattr(self.hardware.vehicle, "pose_source", None) if self.hardware else None
+        attach = getattr(source, "attach_bus", None)
+        if attach is not None:
+            self._entities.extend(attach(session, self.keys))
+            source.wait_first()
 
     def _halt(self) -> None:
         """No more ticks (waits for a tick in progress to finish)."""

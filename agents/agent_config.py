@@ -52,6 +52,12 @@ class AgentConfig:
         seed: seed for simulated sensors (mocap noise), or ``None``.
         mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
         mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
+        mocap: the experiment's ``[mocap]`` section as plain data
+            (:meth:`~hilswarm.agents.mocap.config.MocapSettings.to_dict`), or ``None``: the
+            pose then comes from the link (a ``SimulatedMocap`` of a ``sim://`` plant).
+        mocap_body: this agent's rigid body (``None``: its name).
+        mocap_neighbours: the graph neighbours' rigid bodies (agent name -> body), received
+            only when the controller ``uses_neighbour_poses``.
     """
 
     experiment: str
@@ -71,6 +77,9 @@ class AgentConfig:
     seed: int | None = None
     mocap_noise_std_m: float = 0.0
     mocap_noise_std_rad: float = 0.0
+    mocap: dict[str, Any] | None = None
+    mocap_body: str | None = None
+    mocap_neighbours: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
@@ -147,6 +156,10 @@ def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> Age
     if getattr(vehicle, "needs_board", True):
         board = _open_board(config, vehicle, endpoints)
     controller = resolve_controller(config.controller)()
+    source = getattr(vehicle, "pose_source", None)
+    asks = getattr(controller, "uses_neighbour_poses", False) and config.mocap_neighbours
+    if asks and hasattr(source, "neighbour_poses"):
+        source.neighbours = dict(config.mocap_neighbours)
     model = ControlModel(
         controller,
         dt=config.dt,
@@ -154,7 +167,29 @@ def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> Age
         n_outputs=int(vehicle.n_outputs),
         params=config.params,
     )
+    if asks and hasattr(source, "neighbour_poses"):
+        model.neighbour_poses = source.neighbour_poses
     return AgentHardware(vehicle=vehicle, board=board, model=model)
+
+
+def mocap_pose_source(config: AgentConfig, vehicle: Any, plant: Any | None) -> Any:
+    """The bus pose source of ``config``'s body; with ``system = "sim"`` and a simulated plant
+    it also feeds the plant's true pose to the simulator."""
+    from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap runs only
+    from hilswarm.agents.mocap.pose_source import MocapPoseSource  # noqa: PLC0415
+
+    settings = MocapSettings.from_dict(config.mocap or {})
+    feed = plant if settings.system == "sim" and plant is not None else None
+    source = MocapPoseSource(
+        config.mocap_body or config.name,
+        hold_frames=settings.hold_frames,
+        hold_s=settings.hold_s,
+        start_timeout_s=settings.start_timeout_s,
+        truth=feed,
+        on_lost=vehicle.enter_safe_mode,
+    )
+    source.add_telemetry(vehicle.telemetry)
+    return source
 
 
 def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()) -> Any:
@@ -176,7 +211,9 @@ def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()
             initial_state=list(config.initial_state) or None, dt=config.dt
         )
         options.update(plant=plant, dt=config.dt)
-        if plant is not None:
+        if config.mocap is not None:
+            vehicle.pose_source = mocap_pose_source(config, vehicle, plant)
+        elif plant is not None:
             from hilswarm.agents.sim.mocap import SimulatedMocap  # noqa: PLC0415 - sim only
 
             vehicle.pose_source = SimulatedMocap(
@@ -185,6 +222,8 @@ def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()
                 noise_std_rad=config.mocap_noise_std_rad,
                 seed=(config.seed or 0) + config.index,  # distinct, reproducible per agent
             )
+    elif config.mocap is not None:
+        vehicle.pose_source = mocap_pose_source(config, vehicle, None)
     board = board_for_url(config.link, **options)
     vehicle.connect(board, watchdog_s=config.watchdog_s or DEFAULT_WATCHDOG_S)
     return board

@@ -26,6 +26,9 @@ Key space, one experiment per prefix ``hilswarm/<exp>/``:
 * ``gateway/status``, ``gateway/stats`` — the XBee gateway's state (JSON) and per-tick radio
   figures.
 * ``alive/<name>`` — the agent's liveliness token (kill -9 is seen when it disappears).
+* ``mocap/<body>`` — a rigid body's pose from the experiment's mocap process
+  (:mod:`hilswarm.agents.mocap.message`); ``mocap_status`` — that process's status (JSON);
+  ``mocap_truth/<body>`` — a simulated plant's true pose, for the mocap simulator only.
 
 Agents subscribe only to explicit keys, never wildcards, so a non-neighbour's output is never
 delivered to them. The orchestrator's recorder may use wildcards.
@@ -200,6 +203,21 @@ class BusKeys:
         """Key of agent ``name``'s liveliness token."""
         check_key_name(name, what="agent name")
         return f"{self.prefix}/alive/{name}"
+
+    def mocap(self, body: str) -> str:
+        """Key of rigid body ``body``'s pose, published by the mocap process."""
+        check_key_name(body, what="mocap body")
+        return f"{self.prefix}/mocap/{body}"
+
+    @property
+    def mocap_status(self) -> str:
+        """Key of the mocap process's status (JSON: connected, bodies seen, server lost)."""
+        return f"{self.prefix}/mocap_status"
+
+    def mocap_truth(self, body: str) -> str:
+        """Key of a simulated body's true pose (agents -> the mocap simulator only)."""
+        check_key_name(body, what="mocap body")
+        return f"{self.prefix}/mocap_truth/{body}"
 
     # Wildcards: for the orchestrator and its recorder only, never for agents.
     @property

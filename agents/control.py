@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, ClassVar
@@ -85,6 +85,9 @@ class TickInput:
         u: ``u_k``, the input the vehicle applied (read-only array).
         y: ``y_k``, the output the vehicle sensed (read-only array).
         neighbours: neighbours' ``y_k`` by agent name; ``None`` means no data this tick.
+        neighbour_poses: for a controller with ``uses_neighbour_poses``: each neighbour's
+            newest mocap pose ``[x, y, z (m), roll, pitch, yaw (rad)]`` (world frame) by agent
+            name, ``None`` while its tracking is lost; empty otherwise.
     """
 
     k: int
@@ -93,6 +96,9 @@ class TickInput:
     u: np.ndarray
     y: np.ndarray
     neighbours: Mapping[str, np.ndarray | None] = field(
+        default_factory=lambda: MappingProxyType({})
+    )
+    neighbour_poses: Mapping[str, np.ndarray | None] = field(
         default_factory=lambda: MappingProxyType({})
     )
 
@@ -120,6 +126,7 @@ def _tick_input(
     fields["u"] = u
     fields["y"] = y
     fields["neighbours"] = neighbours
+    fields["neighbour_poses"] = _NO_NEIGHBOURS
     return tick
 
 
@@ -144,6 +151,9 @@ class Controller(ABC):
     state_names: ClassVar[tuple[str, ...]] = ()
     #: Unit of each named state entry (``{"integral_m_s": "m s"}``); absent: no unit.
     state_units: ClassVar[Mapping[str, str]] = {}
+    #: With a ``[mocap]`` system: the agent also receives its graph neighbours' mocap poses
+    #: (``TickInput.neighbour_poses``), not only their outputs.
+    uses_neighbour_poses: ClassVar[bool] = False
 
     @property
     def name(self) -> str:
@@ -329,6 +339,9 @@ class ControlModel:
         self._x0 = None if x0 is None else np.array(x0, dtype=np.float64).reshape(-1)
         self._k = 0
         self._x_hat = self._initial_x_hat()
+        #: Gives the neighbours' mocap poses for ``TickInput.neighbour_poses`` (set by the
+        #: agent when the controller ``uses_neighbour_poses``), or ``None``.
+        self.neighbour_poses: Callable[[], Mapping[str, np.ndarray | None]] | None = None
         names = (
             tuple(input_names)
             if input_names is not None
@@ -457,6 +470,8 @@ class ControlModel:
         tick = _tick_input(
             self._k, tick_time, self.dt, u=_frozen(u), y=_frozen(y), neighbours=frozen_neighbours
         )
+        if self.neighbour_poses is not None:
+            tick.__dict__["neighbour_poses"] = MappingProxyType(dict(self.neighbour_poses()))
         n_states = self._x_hat.shape[0]
         result = controller.step(tick, self._x_hat.copy(), self._params_view)
         if not isinstance(result, tuple) or len(result) != 2:

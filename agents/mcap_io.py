@@ -35,7 +35,7 @@ from array import array
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import IO, Any, Self
+from typing import IO, Any, Protocol, Self
 
 import lz4.frame
 import numpy as np
@@ -552,6 +552,16 @@ class _Topic:
         return (self.template % (int(k), t_text, text, *numbers)).encode()
 
 
+class Mirror(Protocol):
+    """Something that sees what a :class:`McapJsonWriter` writes (the live view)."""
+
+    def add_channel(self, channel_id: int, topic: str, schema: Mapping[str, Any]) -> None:
+        """A topic was registered (its JSON Schema); must not block."""
+
+    def log(self, channel_id: int, data: bytes, log_time_ns: int) -> None:
+        """A message was written (its JSON bytes); must not block."""
+
+
 class McapJsonWriter:
     """Writes one MCAP file of JSON messages, one channel (with its JSON Schema) per topic.
 
@@ -566,6 +576,8 @@ class McapJsonWriter:
             experiment time ``t`` is ``time_origin_ns + t``
             (:func:`~hilswarm.agents.record_schema.experiment_log_time_ns`) and the log time
             passed to a write method, the wall clock, goes into the message as ``wall_ns``.
+        mirror: also hands every channel and message to this (e.g. the live view); ``None``
+            costs nothing.
 
     Use as a context manager, or call :meth:`close` (which writes the summary and footer).
     """
@@ -578,6 +590,7 @@ class McapJsonWriter:
         compression: str = DEFAULT_COMPRESSION,
         profile: str = "",
         time_origin_ns: int | None = None,
+        mirror: Mirror | None = None,
     ) -> None:
         check_chunk_options(chunk_size, compression)
         self.path = Path(path)
@@ -592,6 +605,8 @@ class McapJsonWriter:
             raise
         self._topics: dict[str, _Topic] = {}
         self._closed = False
+        self._mirror = mirror
+        self._add_message = self._writer.add_message if mirror is None else self._mirrored
 
     @property
     def messages_written(self) -> int:
@@ -622,12 +637,17 @@ class McapJsonWriter:
             raise RecordingError(f"MCAP writer for {self.path} is closed")
 
     def _register(self, topic: str, schema: dict[str, Any], fields: tuple[str, ...] | None) -> None:
+        title = str(schema.get("title", ""))
+        # A Foxglove well-known schema keeps its name (foxglove.PoseInFrame): panels key on it.
+        name = title if title.startswith("foxglove.") else topic
         schema_id = self._writer.register_schema(
-            name=topic, encoding="jsonschema", data=json.dumps(schema).encode()
+            name=name, encoding="jsonschema", data=json.dumps(schema).encode()
         )
         channel_id = self._writer.register_channel(
             topic=topic, message_encoding="json", schema_id=schema_id
         )
+        if self._mirror is not None:
+            self._mirror.add_channel(channel_id, topic, schema)
         self._topics[topic] = _Topic(topic, channel_id, schema, fields)
 
     @staticmethod
@@ -768,7 +788,7 @@ class McapJsonWriter:
             publish_time_ns = log_time_ns
         else:
             _check_log_time(publish_time_ns)
-        self._writer.add_message(entry.channel_id, data, log_time_ns, int(publish_time_ns))
+        self._add_message(entry.channel_id, data, log_time_ns, int(publish_time_ns))
 
     def write_floats_many(
         self,
@@ -793,7 +813,7 @@ class McapJsonWriter:
         """
         self._check_open()
         topics = self._topics
-        add = self._writer.add_message
+        add = self._add_message
         origin = self._origin
         count = 0
         for topic, k, t, values, log_time_ns in rows:
@@ -908,7 +928,11 @@ class McapJsonWriter:
         else:
             _check_log_time(publish_time_ns)
             publish_time = int(publish_time_ns)
+        self._add_message(channel_id, data, log_time, publish_time)
+
+    def _mirrored(self, channel_id: int, data: bytes, log_time: int, publish_time: int) -> None:
         self._writer.add_message(channel_id, data, log_time, publish_time)
+        self._mirror.log(channel_id, data, log_time)  # type: ignore[union-attr]
 
     def add_metadata(self, name: str, metadata: Mapping[str, str]) -> None:
         """Write an MCAP metadata record ``name`` (string keys and values)."""

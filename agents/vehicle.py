@@ -541,6 +541,9 @@ class Vehicle(ABC):
             for i, battery in enumerate(self._batteries):
                 volts[i] = battery.sense()
             self.telemetry[BATTERY_CHANNEL].append(k, t, volts)
+        record_pose = getattr(self.pose_source, "record", None)  # a mocap pose source's row
+        if record_pose is not None:
+            record_pose(k, t)
         self.record_telemetry(k, t, y.copy())
         return y
 

@@ -94,7 +94,7 @@ def build_frames(n: int, ticks: int) -> tuple[list[bytes], list[tuple[str, int, 
         for i in range(n):
             y = (rng.normal(size=3) * [1.0, 1.0, 3.0]).tolist()
             u = rng.normal(size=2).tolist() if k else None
-            x_hat = rng.normal(size=2).tolist() if k else None
+            x_hat = rng.normal(size=4).tolist() if k else None  # the waypoint state
             timing = bus.AgentTiming(
                 compute_s=float(rng.random() * 1e-4),
                 actuate_s=float(rng.random() * 1e-4),

@@ -127,6 +127,7 @@ def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
     if parts.settings is not None:
         _check_settings(parts.path, parts.settings, report)
     _check_shared_links(parts, report)
+    _check_mocap_bodies(parts, report)
     built = {name: _AgentCheck(parts, spec, report) for name, spec in parts.agents.items()}
     for check in built.values():
         check.build()
@@ -162,6 +163,32 @@ def _check_settings(path: Path, settings: ExperimentSection, report: CheckReport
                 f"{settings.rate_hz:g} Hz) make a very large recording",
             )
         )
+
+
+def _check_mocap_bodies(parts: ExperimentParts, report: CheckReport) -> None:
+    """A real mocap system must see every agent's body now (``sim``: the agents bring them)."""
+    mocap = parts.mocap
+    if mocap is None or mocap.system == "sim":
+        return
+    from hilswarm.agents.mocap.probe import probe  # noqa: PLC0415 - only with a real system
+
+    try:
+        seen = probe(mocap, duration_s=min(1.0, 20.0 / mocap.rate_hz + 0.2))
+    except HilswarmError as exc:
+        report.problems.append(Problem(parts.path, "mocap.host", str(exc)))
+        return
+    visible = seen.visible()
+    for spec in parts.agents.values():
+        if spec.body not in visible:
+            key = f"agents.{spec.name}.mocap_body"
+            report.problems.append(
+                Problem(
+                    parts.path,
+                    key,
+                    f"body {spec.body!r} is not visible to {mocap.system} at {mocap.host}; "
+                    f"it sees: {', '.join(visible) or 'no bodies'}",
+                )
+            )
 
 
 def _check_graph(path: Path, facts: GraphFacts, report: CheckReport) -> None:

@@ -36,6 +36,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "xbee": ("xbee", "XBee radios: node discovery (scan) and configuration (setup)"),
     "new": ("new", "write a skeleton vehicle or device with its test and experiment file"),
     "calibrate": ("calibrate", "fit and plot a calibration table from measured pairs"),
+    "mocap": ("mocap", "list the bodies a mocap system sees, with rate and position"),
 }
 
 

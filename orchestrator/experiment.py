@@ -108,7 +108,8 @@ class AgentSpec:
         initial_state: initial state of a simulated plant (units of that plant's state).
         calibration: calibration file (resolved against the experiment file's folder) or
             ``None``.
-        mocap_body: the agent's rigid body in the motion-capture system (default: its name).
+        mocap_body: the agent's rigid body in the motion-capture system (``None``: its name,
+            see :attr:`body`).
     """
 
     name: str
@@ -120,11 +121,12 @@ class AgentSpec:
     pinout: dict[str, dict[str, int | str]] = field(default_factory=dict)
     initial_state: tuple[float, ...] = ()
     calibration: Path | None = None
-    mocap_body: str = ""
+    mocap_body: str | None = None
 
-    def __post_init__(self) -> None:
-        if not self.mocap_body:
-            object.__setattr__(self, "mocap_body", self.name)
+    @property
+    def body(self) -> str:
+        """The agent's rigid body name in the motion-capture system."""
+        return self.mocap_body or self.name
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,7 +159,8 @@ class Experiment:
             (robots safe, the run ends) or ``"continue"`` unrecorded.
         max_late_fraction: realtime: late ticks above this fraction of all ticks make the run
             degraded (0..1).
-        mocap: the ``[mocap]`` table (motion capture), or ``None``.
+        mocap: the ``[mocap]`` table (motion capture) as a
+            :class:`~hilswarm.agents.mocap.config.MocapSettings`, or ``None``.
         gateway: the ``[gateway]`` table (XBee gateway) as a
             :class:`~hilswarm.agents.xbee.config.GatewayConfig`, or ``None``.
     """
@@ -178,7 +181,7 @@ class Experiment:
     lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
     on_recording_failure: Literal["stop", "continue"] = "stop"
     max_late_fraction: float = DEFAULT_MAX_LATE_FRACTION
-    mocap: MocapSection | None = None
+    mocap: Any = None
     gateway: Any = None
 
     @property
@@ -238,7 +241,8 @@ class ExperimentParts:
         settings: the valid ``[experiment]`` table (overrides applied), or ``None``.
         agents: agent name -> spec, for every agent whose table (with ``[defaults]``) is valid.
         graph: ``(names, adjacency, graph file or None)`` when the graph is valid.
-        mocap: the valid ``[mocap]`` table, or ``None``.
+        mocap: the valid ``[mocap]`` table as a
+            :class:`~hilswarm.agents.mocap.config.MocapSettings`, or ``None``.
         gateway: the valid ``[gateway]`` table as a
             :class:`~hilswarm.agents.xbee.config.GatewayConfig`, or ``None``.
         experiment: the experiment, when there is no problem at all.
@@ -249,7 +253,7 @@ class ExperimentParts:
     settings: ExperimentSection | None = None
     agents: dict[str, AgentSpec] = field(default_factory=dict)
     graph: tuple[list[str], np.ndarray, Path | None] | None = None
-    mocap: MocapSection | None = None
+    mocap: Any = None
     gateway: Any = None
     experiment: Experiment | None = None
 
@@ -393,7 +397,6 @@ class _Loader:
                 known = ", ".join(ExperimentFile.model_fields)
                 self.problem(key, f"unknown key; expected one of {known}")
         settings = self._settings(overrides)
-        mocap = self.parts.mocap = self._section("mocap", MocapSection)
         gateway = self.parts.gateway = self._gateway()
         agent_tables = self._table("agents", required=True)
         too_many = len(agent_tables) > self.max_agents
@@ -402,6 +405,7 @@ class _Loader:
         else:
             self._agents(agent_tables)
         self._links(overrides.get("links") or {}, agent_tables)
+        mocap = self.parts.mocap = self._mocap(settings)
         graph = self._graph(self._table("graph", required=True), skip=too_many)
         if too_many or self.parts.problems or settings is None or graph is None:
             return
@@ -427,6 +431,43 @@ class _Loader:
             mocap=mocap,
             gateway=gateway,
         )
+
+    def _mocap(self, settings: ExperimentSection | None) -> Any:
+        """``[mocap]`` as a MocapSettings (``None`` when absent), and the rules between it, the
+        run's mode and the agents' bodies."""
+        if "mocap" not in self.data:
+            for name, spec in self.parts.agents.items():
+                if spec.mocap_body is not None:
+                    self.problem(f"agents.{name}.mocap_body", "given but there is no [mocap]")
+            return None
+        section: MocapSection | None = self.validate(MocapSection, self.data["mocap"], "mocap")
+        if section is None:
+            return None
+        ok = True
+        if section.host is None and section.system != "sim":
+            self.problem("mocap.host", 'missing; give the mocap server address, e.g. host = "..."')
+            ok = False
+        if section.sim is not None and section.system != "sim":
+            self.problem("mocap.sim", 'only for system = "sim"')
+            ok = False
+        if settings is not None and settings.mode == "lockstep":
+            self.problem(
+                "experiment.mode", 'a [mocap] system runs on the wall clock; use mode = "realtime"'
+            )
+        bodies: dict[str, str] = {}
+        for name, spec in self.parts.agents.items():
+            other = bodies.setdefault(spec.body, name)
+            if other != name:
+                self.problem(
+                    f"agents.{name}.mocap_body", f"body {spec.body!r} is already agent {other!r}'s"
+                )
+        if not ok:
+            return None
+        from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap files only
+
+        data = section.model_dump(exclude_none=True)
+        data.setdefault("host", "127.0.0.1")
+        return MocapSettings.from_dict(data)
 
     def _gateway(self) -> Any:
         """``[gateway]`` as a GatewayConfig (``None`` when absent)."""
@@ -559,7 +600,7 @@ class _Loader:
             pinout={d: dict(roles) for d, roles in merged.get("pinout", {}).items()},
             initial_state=tuple(merged.get("initial_state", ())),
             calibration=(self.path.parent / calibration).resolve() if calibration else None,
-            mocap_body=merged.get("mocap_body") or name,
+            mocap_body=merged.get("mocap_body"),
         )
 
     def _link_ok(self, name: str, url: str) -> bool:

@@ -57,6 +57,13 @@ def agent_config_for(
         seed=experiment.seed,
         mocap_noise_std_m=mocap_noise_std_m,
         mocap_noise_std_rad=mocap_noise_std_rad,
+        mocap=experiment.mocap.to_dict() if experiment.mocap is not None else None,
+        mocap_body=spec.body if experiment.mocap is not None else None,
+        mocap_neighbours=(
+            {n: experiment.agent(n).body for n in experiment.neighbours(name)}
+            if experiment.mocap is not None
+            else {}
+        ),
     )
 
 

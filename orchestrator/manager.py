@@ -47,6 +47,7 @@ from hilswarm.orchestrator.record_stream import (
     FrameRecorder,
     RecordSink,
     event_frame,
+    gateway_frame,
     status_frame,
     telemetry_frame,
     tick_frame,
@@ -219,6 +220,12 @@ class InstanceManager:
                 zenoh.handlers.Callback(self._on_telemetry, indirect=False),
             )
         )
+        entities.append(
+            session.declare_subscriber(
+                keys.gateway("*"),
+                zenoh.handlers.Callback(self._on_gateway, indirect=False),
+            )
+        )
         put = self._events.put
         entities.append(
             session.declare_subscriber(
@@ -303,7 +310,9 @@ class InstanceManager:
                 self._frames.append(status_frame(i, self._wall_ns(), payload))
             self.agent_states[name] = state
         if state == "safe":
-            self._events.put((_SAFE, name, str(message.get("detail", ""))))
+            agent_k = message.get("k")
+            agent_k = agent_k if isinstance(agent_k, int) else -1
+            self._events.put((_SAFE, name, str(message.get("detail", "")), agent_k))
 
     def _on_vector(self, sample: zenoh.Sample) -> None:
         """A vector on another agent key (telemetry): recorded as it came."""
@@ -330,6 +339,15 @@ class InstanceManager:
             logger.warning("telemetry batch not understood: %s", exc)
             return
         frame = telemetry_frame(i, self._wall_ns(), sample.payload.to_bytes())
+        with self._lock:
+            self._frames.append(frame)
+
+    def _on_gateway(self, sample: zenoh.Sample) -> None:
+        """The XBee gateway's status and per-tick figures (JSON): recorded as they came."""
+        if self._sink is None:
+            return
+        leaf = str(sample.key_expr).rsplit("/", 1)[-1]
+        frame = gateway_frame(self._wall_ns(), leaf, sample.payload.to_bytes())
         with self._lock:
             self._frames.append(frame)
 
@@ -621,7 +639,7 @@ class InstanceManager:
         elif kind == _STOP:
             self._stop_reason = str(item[1])
         elif kind == _SAFE:
-            self._on_agent_safe(item[1], item[2], k)
+            self._on_agent_safe(item[1], item[2], k, first_tick=item[3] == 0)
 
     def _wait_until(self, when: float) -> None:
         """Block until ``when`` on the manager clock, still handling stop requests."""
@@ -665,8 +683,17 @@ class InstanceManager:
             self._record_event(ORCHESTRATOR, "running", k=k, detail=reason)
             self._publish_state("running", reason)
 
-    def _on_agent_safe(self, name: str, detail: str, k: int) -> None:
-        """An agent reported state ``safe`` while ticking: apply ``on_agent_safe``."""
+    def _on_agent_safe(self, name: str, detail: str, k: int, *, first_tick: bool = False) -> None:
+        """An agent reported state ``safe`` while ticking: apply ``on_agent_safe``.
+
+        An agent safe from its first tick (no pose, a fault at start) fails the run whatever
+        the policy: it never did what the experiment asks.
+        """
+        if first_tick and not self._stop_reason and not self.summary.failed:
+            self.summary.failed = True
+            logger.warning("agent %s was safe from its first tick: %s", name, detail)
+            if self._display is not None:
+                self._display.log(f"agent {name} was safe from its first tick: {detail}")
         if self.experiment.on_agent_safe != "stop" or self._stop_reason:
             return
         self.summary.failed = True

@@ -138,7 +138,7 @@ def _reason(
         )
     if kind in ("string_too_short", "too_short"):
         return "must not be empty"
-    if kind in ("pin",):
+    if kind in ("pin", "occlusion"):  # the schema's own error types carry their message
         return str(detail["msg"])
     return f"{value!r}: {detail['msg']}"
 

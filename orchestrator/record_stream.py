@@ -25,6 +25,9 @@ Frame layout (little-endian): ``uint8 kind``, ``uint32 body length``, body:
 * ``TELEMETRY`` — ``uint16 agent``, ``int64 log time [ns]``, the agent's telemetry batch as
   sent (:func:`~hilswarm.agents.bus.encode_telemetry_batch`); the recorder writes one message
   per row on ``/<agent>/telemetry/<channel>``, with the channel's field names.
+* ``GATEWAY`` — ``int64 log time [ns]``, ``uint16 leaf length``, the key leaf (``stats``,
+  ``status``), the XBee gateway's JSON as sent (with ``k``, ``t``, ``values``); recorded on
+  ``/gateway/<leaf>``.
 """
 
 from __future__ import annotations
@@ -40,12 +43,13 @@ import numpy as np
 from hilswarm.agents import bus
 from hilswarm.agents.errors import HilswarmError, RecordingError
 from hilswarm.agents.telemetry import telemetry_topic
+from hilswarm.orchestrator import pose_topic
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.recorder import TICKS_SCHEMA, TICKS_TOPIC, Recorder
 
 logger = logging.getLogger(__name__)
 
-Y, TICK, STATUS, EVENT, VECTOR, TELEMETRY = 1, 2, 3, 4, 5, 6
+Y, TICK, STATUS, EVENT, VECTOR, TELEMETRY, GATEWAY = 1, 2, 3, 4, 5, 6, 7
 
 _HEAD = struct.Struct("<BI")
 _Y_HEAD = struct.Struct("<BIHqI")
@@ -53,6 +57,7 @@ _TICK_HEAD = struct.Struct("<BIqqdddHH")
 _AGENT_HEAD = struct.Struct("<BIHq")
 _EVENT_HEAD = struct.Struct("<BIq")
 _VECTOR_HEAD = struct.Struct("<BIHqH")
+_GATEWAY_HEAD = struct.Struct("<BIqH")
 #: Layouts of the bus payloads a Y frame carries, unpacked in place by the recorder: the head
 #: of :func:`~hilswarm.agents.bus.encode_vector` (k, t) and of
 #: :func:`~hilswarm.agents.bus.encode_report` (compute_s, actuate_s, sense_s, skipped, n_u, n_x).
@@ -136,6 +141,13 @@ def vector_frame(agent: int, log_time_ns: int, leaf: str, payload: bytes) -> byt
     name = leaf.encode()
     size = _VECTOR_HEAD.size - _HEAD.size + len(name) + len(payload)
     return _VECTOR_HEAD.pack(VECTOR, size, agent, log_time_ns, len(name)) + name + payload
+
+
+def gateway_frame(log_time_ns: int, leaf: str, payload: bytes) -> bytes:
+    """Frame of an XBee gateway message (``gateway/<leaf>``, JSON as sent)."""
+    name = leaf.encode()
+    size = _GATEWAY_HEAD.size - _HEAD.size + len(name) + len(payload)
+    return _GATEWAY_HEAD.pack(GATEWAY, size, log_time_ns, len(name)) + name + payload
 
 
 def telemetry_frame(agent: int, log_time_ns: int, payload: bytes) -> bytes:
@@ -256,6 +268,8 @@ class FrameRecorder:
                     self._event(frame)
                 elif kind == VECTOR:
                     self._vector(frame)
+                elif kind == GATEWAY:
+                    self._gateway(frame)
                 else:
                     raise RecordingError(f"unknown frame kind {kind}")
             except (HilswarmError, ValueError, struct.error, IndexError) as exc:
@@ -478,6 +492,16 @@ class FrameRecorder:
             f"/{self.names[i]}/{leaf}", k=k, t=t, values=values, log_time_ns=log_ns
         )
 
+    def _gateway(self, frame: bytes) -> None:
+        _, _, log_ns, n_leaf = _GATEWAY_HEAD.unpack_from(frame)
+        start = _GATEWAY_HEAD.size
+        leaf = frame[start : start + n_leaf].decode()
+        message = bus.decode_json(frame[start + n_leaf :])
+        message.setdefault("k", 0)
+        message.setdefault("t", 0.0)
+        message.setdefault("values", [])
+        self.recorder.write_message(f"/gateway/{leaf}", message, log_time_ns=log_ns)
+
     def _telemetry(
         self, frame: bytes, rows: list[tuple[str, int, float, Sequence[float], int]]
     ) -> None:
@@ -500,6 +524,33 @@ class FrameRecorder:
                     for k, t, values in zip(k_list, t_list, value_rows, strict=True)
                 ]
             self.telemetry_rows += len(k_list)
+            if pose_topic.is_pose_channel(channel.channel, channel.fields):
+                self._poses(agent, zip(k_list, t_list, value_rows, strict=True), log_ns, rows)
+
+    def _poses(
+        self,
+        agent: str,
+        samples: Iterable[tuple[int, float, Sequence[float]]],
+        log_ns: int,
+        rows: list[tuple[str, int, float, Sequence[float], int]],
+    ) -> None:
+        """``/<agent>/pose`` (foxglove.PoseInFrame) from the agent's mocap rows."""
+        if rows:
+            self._flush_rows()
+        topic = pose_topic.pose_topic(agent)
+        for k, t, values in samples:
+            message = pose_topic.pose_message(k, t, values, log_ns)
+            if message is None:
+                continue
+            if self._wall:
+                message["wall_ns"] = log_ns
+            self.recorder.write_encoded(
+                topic,
+                json.dumps(message).encode(),
+                log_time_ns=log_ns,
+                schema=pose_topic.POSE_IN_FRAME_SCHEMA,
+                t=t,
+            )
 
     def _telemetry_fields(self, topic: str, fields: tuple[str, ...]) -> tuple[str, ...] | None:
         """Register ``topic`` with ``fields`` on first sight; ``None``: record it plain."""

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 from hilswarm.agents.errors import RecordingError
-from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION, McapJsonWriter
+from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION, McapJsonWriter, Mirror
 from hilswarm.orchestrator import calibration_report, record_content
 from hilswarm.orchestrator.experiment import Experiment
 from numpy.typing import ArrayLike
@@ -115,6 +115,8 @@ class Recorder:
             goes into the message as ``wall_ns``. When ``None``, log times are the wall times
             given, and ``/experiment`` is written just before the first other message, with
             that message's log time (the recorder reads no clock itself).
+        mirror: also sees every channel and message written (the live view,
+            :class:`~hilswarm.orchestrator.live_view.LiveView`).
 
     Use as a context manager, or call :meth:`close` on every exit path: closing writes the
     MCAP summary and footer.
@@ -128,13 +130,18 @@ class Recorder:
         chunk_size: int = DEFAULT_CHUNK_SIZE,
         compression: str = DEFAULT_COMPRESSION,
         log_time_ns: int | None = None,
+        mirror: Mirror | None = None,
     ) -> None:
         self.path = Path(path)
         self.experiment = experiment
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._origin = log_time_ns
         self._writer = McapJsonWriter(
-            self.path, chunk_size=chunk_size, compression=compression, time_origin_ns=log_time_ns
+            self.path,
+            chunk_size=chunk_size,
+            compression=compression,
+            time_origin_ns=log_time_ns,
+            mirror=mirror,
         )
         self._lock = threading.Lock()
         self._experiment_written = False

@@ -72,6 +72,7 @@ _F_GETPIPE_SZ = getattr(fcntl, "F_GETPIPE_SZ", 1032)
 _PIPE_MAX_SIZE = Path("/proc/sys/fs/pipe-max-size")
 _MIN_PIPE_SIZE = 64 * 1024
 _READY = b"ready\n"
+_READY_LIVE = b"ready live "
 
 
 def _enlarge_pipe(fd: int, size: int) -> int:
@@ -109,6 +110,8 @@ class RecorderProcess:
         compression: MCAP chunk compression (``"zstd"``, ``"lz4"`` or ``"none"``).
         queue_bytes: records kept in memory while the pipe is full [bytes].
         python: interpreter to run the recorder with.
+        live_port: serve the run live on this localhost port (0: a free one; ``None``: no
+            live view), see :mod:`hilswarm.orchestrator.live_view`.
 
     Call :meth:`wait_ready` before the first tick and :meth:`close` on every exit path.
     """
@@ -123,6 +126,7 @@ class RecorderProcess:
         compression: str = DEFAULT_COMPRESSION,
         queue_bytes: int = DEFAULT_QUEUE_BYTES,
         python: str = sys.executable,
+        live_port: int | None = None,
     ) -> None:
         if queue_bytes < 1:
             raise RecordingError(f"queue_bytes must be positive [bytes], got {queue_bytes}")
@@ -134,8 +138,11 @@ class RecorderProcess:
                 "log_time_ns": int(log_time_ns),
                 "chunk_size": int(chunk_size),
                 "compression": str(compression),
+                "live_port": live_port,
             }
         )
+        #: The live view's ``ws://`` URL once :meth:`wait_ready` returned ("" without one).
+        self.live_url = ""
         self.process = subprocess.Popen(
             [python, "-m", "hilswarm.orchestrator.recorder_process"],
             stdin=subprocess.PIPE,
@@ -175,6 +182,9 @@ class RecorderProcess:
             raise RecordingError("the recorder process has no standard output")
         ready, _, _ = select.select([stdout], [], [], timeout_s)
         line = stdout.readline() if ready else b""
+        if line.startswith(_READY_LIVE):
+            self.live_url = line[len(_READY_LIVE) :].decode().strip()
+            line = _READY
         if line != _READY:
             code = self.process.poll()
             if code is None and ready:  # its output closed: it is exiting
@@ -340,15 +350,26 @@ def record_stream(fd: int, ready: Any) -> int:
     setup = pickle.loads(_read_exactly(fd, size))  # our own parent process wrote it
     experiment: Experiment = setup["experiment"]
     log_time_ns: int = setup["log_time_ns"]
-    with Recorder(
-        setup["path"],
-        experiment,
-        chunk_size=setup["chunk_size"],
-        compression=setup.get("compression", DEFAULT_COMPRESSION),
-        log_time_ns=log_time_ns,
-    ) as recorder:
+    live = None
+    if setup.get("live_port") is not None:
+        from hilswarm.orchestrator.live_view import LiveView  # noqa: PLC0415 - only with --live
+
+        live = LiveView(int(setup["live_port"]), name=f"hilswarm {experiment.name}")
+    with contextlib.ExitStack() as stack:
+        if live is not None:
+            stack.callback(live.close)
+        recorder = stack.enter_context(
+            Recorder(
+                setup["path"],
+                experiment,
+                chunk_size=setup["chunk_size"],
+                compression=setup.get("compression", DEFAULT_COMPRESSION),
+                log_time_ns=log_time_ns,
+                mirror=live,
+            )
+        )
         record_vehicles(recorder, experiment, log_time_ns=log_time_ns)
-        ready.write(_READY)
+        ready.write(_READY if live is None else _READY_LIVE + live.url.encode() + b"\n")
         ready.flush()
         frames = FrameRecorder(recorder, experiment)
         reader = FrameReader()

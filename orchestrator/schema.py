@@ -20,6 +20,7 @@ import json
 from typing import Annotated, Any, Literal
 
 from pydantic import (
+    AfterValidator,
     BaseModel,
     ConfigDict,
     Field,
@@ -34,7 +35,6 @@ __all__ = [
     "DEFAULT_MAX_LATE_FRACTION",
     "MAX_LOCKSTEP_WINDOW",
     "MAX_RATE_HZ",
-    "MOCAP_SYSTEMS",
     "NAME_REGEX",
     "AgentTable",
     "ExperimentFile",
@@ -42,6 +42,7 @@ __all__ = [
     "GatewaySection",
     "GraphSection",
     "MocapSection",
+    "MocapSimSection",
     "json_schema",
     "json_schema_text",
 ]
@@ -56,8 +57,6 @@ DEFAULT_LOCKSTEP_WINDOW = 8
 MAX_LOCKSTEP_WINDOW = 1024
 #: Late ticks (realtime) above this fraction of all ticks make a run "degraded".
 DEFAULT_MAX_LATE_FRACTION = 0.01
-#: Motion-capture systems of ``[mocap] system`` (``sim``: the protocol-level simulator).
-MOCAP_SYSTEMS = ("vicon", "optitrack", "qualisys", "vrpn", "sim")
 
 Name = Annotated[str, StringConstraints(pattern=NAME_REGEX)]
 NonEmpty = Annotated[str, StringConstraints(min_length=1, strip_whitespace=True)]
@@ -175,30 +174,67 @@ class AgentTable(_Table):
     """Initial state of a simulated plant, in that plant's state units."""
     calibration: NonEmpty | None = None
     """Calibration file, relative to the experiment file."""
-    mocap_body: NonEmpty | None = None
+    mocap_body: Name | None = None
     """Name of this agent's rigid body in the motion-capture system (default: the agent's
     name)."""
 
 
+def _occlusion(window: tuple[float, float]) -> tuple[float, float]:
+    if not 0.0 <= window[0] < window[1]:
+        raise PydanticCustomError(
+            "occlusion",
+            "{window!r} is not [start_s, end_s] with 0 <= start < end",
+            {"window": list(window)},
+        )
+    return window
+
+
+Occlusion = Annotated[tuple[float, float], AfterValidator(_occlusion)]
+
+
+class MocapSimSection(_Table):
+    """``[mocap.sim]`` (system = "sim" only): what the simulated cameras do."""
+
+    noise_std_m: float = Field(0.0, ge=0.0, le=10.0)
+    """Standard deviation of the position noise [m]."""
+    noise_std_rad: float = Field(0.0, ge=0.0, le=10.0)
+    """Standard deviation of the attitude noise [rad]."""
+    latency_s: float = Field(0.0, ge=0.0, le=10.0)
+    """Delay between a pose and its frame's arrival [s]."""
+    dropout_rate: float = Field(0.0, ge=0.0, le=1.0)
+    """Probability per body and frame that an occlusion starts (0..1)."""
+    dropout_frames: int = Field(5, ge=1)
+    """Frames an occlusion lasts."""
+    occlusions: dict[str, Occlusion] = Field(default_factory=dict)
+    """Scripted occlusions: body -> [start_s, end_s] [s from its first pose]."""
+    seed: int | None = Field(None, ge=0)
+    """Seed of the simulated noise and dropouts."""
+
+
 class MocapSection(_Table):
-    """``[mocap]``: the motion-capture system that gives vehicles their pose."""
+    """``[mocap]``: the motion-capture system that gives vehicles their pose (read into a
+    :class:`hilswarm.agents.mocap.config.MocapSettings`)."""
 
     system: Literal["vicon", "optitrack", "qualisys", "vrpn", "sim"]
-    """vicon, optitrack, qualisys, vrpn, or sim (the protocol-level simulator)."""
+    """vicon, optitrack, qualisys, vrpn, or sim (the protocol-level simulator on loopback)."""
     host: NonEmpty | None = None
-    """Host (and port, host:port) of the motion-capture server; not needed for sim."""
-    rate_hz: float | None = Field(None, gt=0.0, le=MAX_RATE_HZ)
-    """Frame rate of the motion-capture system [Hz]; default: the system's own."""
-    noise_std_m: float = Field(0.0, ge=0.0)
-    """sim: standard deviation of the position noise [m]."""
-    noise_std_rad: float = Field(0.0, ge=0.0)
-    """sim: standard deviation of the attitude noise [rad]."""
-    dropout: float = Field(0.0, ge=0.0, le=1.0)
-    """sim: fraction of frames in which a body is not seen (0..1)."""
-    latency_s: float = Field(0.0, ge=0.0)
-    """sim: delay between a pose and its frame's arrival [s]."""
-    options: dict[str, Any] = Field(default_factory=dict)
-    """System-specific options (passed to the motion-capture client or simulator)."""
+    """The mocap server's address; required except for sim (then 127.0.0.1)."""
+    port: int | None = Field(None, gt=0, lt=65536)
+    """The server's port (default: the system's)."""
+    rate_hz: float = Field(100.0, gt=0.0, le=10000.0)
+    """The system's frame rate [Hz]."""
+    hold_frames: int = Field(10, ge=1, le=100000)
+    """Frames a lost body's pose is held before its agent goes safe."""
+    up_axis: Literal["y", "z"] | None = None
+    """Override the system's default up axis."""
+    position_std_m: float = Field(0.002, ge=0.0)
+    """Kalman measurement noise of the position [m]."""
+    yaw_std_rad: float = Field(0.02, ge=0.0)
+    """Kalman measurement noise of the yaw [rad]."""
+    start_timeout_s: float = Field(5.0, ge=0.0, le=600.0)
+    """How long an agent waits for its body to be seen at start [s]."""
+    sim: MocapSimSection | None = None
+    """system = "sim" only: the simulated cameras."""
 
 
 class GatewaySection(_Table):

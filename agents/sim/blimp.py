@@ -132,6 +132,8 @@ class BlimpPlant(ContinuousPlant):
         mass_diagonal: diagonal of M [kg ×3, kg·m² ×3].
     """
 
+    #: :meth:`pose` is in the NED frame (z down), see :mod:`hilswarm.agents.mocap.frames`.
+    pose_frame = "ned"
     #: Units of the inputs and outputs (recorded in the MCAP schemas, shown on plot axes).
     input_units: ClassVar[Mapping[str, str]] = {
         "thrust_left": "N",
@@ -370,6 +372,9 @@ class BlimpPinPlant:
         pinout: pin numbers (default: Code Sample A.2).
         substeps: RK4 steps per ``dt``.
     """
+
+    #: :meth:`pose` is in the NED frame (z down), see :mod:`hilswarm.agents.mocap.frames`.
+    pose_frame = "ned"
 
     def __init__(
         self,

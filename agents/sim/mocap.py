@@ -72,6 +72,8 @@ class SimulatedMocap:
         self._rng = np.random.default_rng(seed)
         self._last: np.ndarray | None = None
         self._last_t: float | None = None
+        #: Frame of the poses: the source's (``pose_frame``; the blimp plant's is ``"ned"``).
+        self.frame: str = getattr(source, "pose_frame", "world")
 
     def _true_pose(self) -> np.ndarray:
         pose = self.source.pose()

@@ -46,6 +46,7 @@ from hilswarm.agents.devices.output_pin import OutputPin
 from hilswarm.agents.devices.servo import Servo
 from hilswarm.agents.errors import VehicleError
 from hilswarm.agents.link.board import PWM_MAX
+from hilswarm.agents.mocap.frames import world_to_ned
 from hilswarm.agents.sim.blimp import BlimpPinout, BlimpPinPlant
 from hilswarm.agents.sim.blimp_params import DEFAULT_BLIMP_PARAMS, BatteryParams, BlimpParams
 from hilswarm.agents.vehicle import Vehicle
@@ -91,6 +92,8 @@ class Blimpduino(Vehicle):
         substeps: RK4 steps per tick of the simulated hardware.
     """
 
+    #: Outputs come from motion capture (``pose_source``): ``check`` wants a source of it.
+    needs_pose: ClassVar[bool] = True
     n_inputs: ClassVar[int] = 3
     n_outputs: ClassVar[int] = 4
     input_names: ClassVar[tuple[str, ...]] = ("thrust_left", "thrust_right", "thrust_angle")
@@ -102,8 +105,6 @@ class Blimpduino(Vehicle):
     }
     output_units: ClassVar[Mapping[str, str]] = {"x": "m", "y": "m", "z": "m", "yaw": "rad"}
     profile: ClassVar[str] = "fio"
-    #: Outputs come from motion capture (pose_source): a real board needs [mocap].
-    needs_pose: ClassVar[bool] = True
     default_pinout: ClassVar[Mapping[str, Mapping[str, int | str]]] = {
         "motor": {
             "left_fwd": 5,
@@ -196,7 +197,12 @@ class Blimpduino(Vehicle):
     # -- the tick ----------------------------------------------------------------------------
 
     def read_outputs(self) -> np.ndarray:
-        """``[x, y, z, yaw]`` from the pose source [m, world NED; rad]."""
+        """``[x, y, z, yaw]`` from the pose source [m, world NED; rad].
+
+        A pose source in the project's world frame (``frame = "world"``: the mocap system) is
+        mapped into NED by :func:`~hilswarm.agents.mocap.frames.world_to_ned`; a
+        :class:`~hilswarm.agents.sim.mocap.SimulatedMocap` of the blimp plant is NED already.
+        """
         if self.pose_source is None:
             raise VehicleError(
                 f"vehicle {self.name!r} (Blimpduino) has no pose source: its outputs come from "
@@ -208,6 +214,8 @@ class Blimpduino(Vehicle):
                 f"vehicle {self.name!r}: pose source returned shape {pose.shape}, expected "
                 "[x, y, z, roll, pitch, yaw]"
             )
+        if getattr(self.pose_source, "frame", "ned") == "world":  # mocap: world -> NED
+            pose = world_to_ned(pose)
         return pose[[0, 1, 2, 5]]
 
     def actuate(self, u: np.ndarray) -> np.ndarray:

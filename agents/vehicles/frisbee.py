@@ -88,6 +88,8 @@ class FrisbeeBot(Vehicle):
         sim_battery_drain_v_per_s: simulated discharge rate [V/s] (``sim://`` only; 0 = none).
     """
 
+    #: Outputs come from motion capture (``pose_source``): ``check`` wants a source of it.
+    needs_pose: ClassVar[bool] = True
     n_inputs: ClassVar[int] = 2
     n_outputs: ClassVar[int] = 3
     input_names: ClassVar[tuple[str, ...]] = ("v_left", "v_right")
@@ -95,8 +97,6 @@ class FrisbeeBot(Vehicle):
     input_units: ClassVar[Mapping[str, str]] = {"v_left": "m/s", "v_right": "m/s"}
     output_units: ClassVar[Mapping[str, str]] = {"x": "m", "y": "m", "psi": "rad"}
     profile: ClassVar[str] = "duemilanove"
-    #: Outputs come from motion capture (pose_source): a real board needs [mocap].
-    needs_pose: ClassVar[bool] = True
     default_pinout: ClassVar[Mapping[str, Mapping[str, int | str]]] = {
         "drive": {
             "left_fwd": 7,

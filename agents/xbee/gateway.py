@@ -20,9 +20,11 @@ the gateway asks the radio for ``HV``/``VR`` (its frame family), and sets ``AP``
 radio answers in the other API mode. A lost port (coordinator unplugged) is re-opened every
 :data:`REOPEN_S`; meanwhile the agents' boards time out and their agents go safe.
 
-Every ``stats_period_s`` (and on every change of state) it publishes JSON on
-``gateway/stats``: per direction bytes and UART load, frames, TX failures and retries, and per
-robot the last RSSI [dBm]; ``gateway/status`` carries ``connected`` / ``disconnected``.
+For every tick the manager releases (every ``stats_period_s`` without ticks) it publishes JSON
+on ``gateway/stats`` (recorded as ``/gateway/stats``): ``k``, ``t``, ``values`` =
+:data:`STATS_FIELDS` (estimated air time, air and host UART load both ways, TX failures,
+retries), per robot the last RSSI [dBm] and the running totals; ``gateway/status`` carries
+``connected`` / ``disconnected``.
 """
 
 from __future__ import annotations
@@ -63,6 +65,15 @@ _log = logging.getLogger(__name__)
 
 #: Pause between two attempts to re-open a lost coordinator port [s].
 REOPEN_S = 0.2
+#: The ``values`` of a ``gateway/stats`` message.
+STATS_FIELDS = (
+    "air_s",  # estimated air time of the period's packets [s]
+    "air_load",  # the same as a fraction of the period
+    "uart_out_load",  # host -> coordinator UART, fraction of its capacity
+    "uart_in_load",  # coordinator -> host UART, fraction of its capacity
+    "tx_failures",  # TX Status failures in the period
+    "retries",  # MAC retries reported in the period (ZigBee/DigiMesh Transmit Status)
+)
 #: How long the start-up AT exchange waits for each answer [s].
 AT_TIMEOUT_S = 1.0
 _POLL_S = 0.02
@@ -92,6 +103,7 @@ class GatewayStats:
 
     uart_out_bytes: int = 0
     uart_in_bytes: int = 0
+    air_s: float = 0.0  # estimated air time of every packet sent and received [s]
     reconnections: int = 0
     dropped_frames: int = 0
     robots: dict[str, RobotStats] = field(default_factory=dict)
@@ -145,7 +157,10 @@ class Gateway:
         self._threads: list[threading.Thread] = []
         self._entities: list[Any] = []
         self._rx_pubs: dict[str, Any] = {}
-        self._max_payload = AirParams().max_payload
+        self._air = AirParams()
+        self._max_payload = self._air.max_payload
+        self._ticks: queue.SimpleQueue[tuple[int, float]] = queue.SimpleQueue()
+        self._last_tick = (0, 0.0)
 
     # ------------------------------------------------------------------ life cycle
     def start(self) -> Gateway:
@@ -161,6 +176,7 @@ class Gateway:
                     self.keys.link_tx(name), lambda s, n=name: self._on_tx(n, s)
                 )
             )
+        self._entities.append(self.session.declare_subscriber(self.keys.tick, self._on_tick))
         self._status_pub = self.session.declare_publisher(self.keys.gateway("status"))
         self._stats_pub = self.session.declare_publisher(self.keys.gateway("stats"))
         for target, name in (
@@ -331,6 +347,7 @@ class Gateway:
                     break
                 robot.tx_frames += 1
                 robot.tx_bytes += len(chunk)
+                self.stats.air_s += self._air.mean_unicast_s(len(chunk))
 
     # ------------------------------------------------------------------ radio -> bus
     def _read_loop(self) -> None:
@@ -357,6 +374,7 @@ class Gateway:
             robot = self.stats.robots[name]
             robot.rx_frames += 1
             robot.rx_bytes += len(frame.data)
+            self.stats.air_s += self._air.mean_unicast_s(len(frame.data))
             if isinstance(frame, Rx64Packet):
                 robot.rssi_dbm = frame.rssi_dbm
             self._rx_pubs[name].put(frame.data)
@@ -391,8 +409,24 @@ class Gateway:
             return
 
     # ------------------------------------------------------------------ figures
+    def _on_tick(self, sample: zenoh.Sample) -> None:
+        """Bus callback: note the released tick (the stats thread publishes its figures)."""
+        try:
+            tick = bus.decode_tick(sample.payload.to_bytes())
+        except bus.BusMessageError:
+            return
+        self._ticks.put((tick.k, tick.t))
+
     def _publish_status(self, state: str, detail: str = "") -> None:
-        payload = {"state": state, "detail": detail, "port": self.port_url}
+        k, t = self._last_tick
+        payload = {
+            "k": k,
+            "t": t,
+            "values": [],
+            "state": state,
+            "detail": detail,
+            "port": self.port_url,
+        }
         with contextlib.suppress(zenoh.ZError):
             self._status_pub.put(json.dumps(payload))
 
@@ -404,16 +438,40 @@ class Gateway:
         return data
 
     def _stats_loop(self) -> None:
+        """Publish ``gateway/stats`` once per tick released (or every ``stats_period_s``
+        without ticks): the figures since the previous message."""
         last = self.snapshot()
         last_t = self.clock()
-        while not self._stop.wait(self.stats_period_s):
+        while not self._stop.is_set():
+            try:
+                self._last_tick = self._ticks.get(timeout=self.stats_period_s)
+                while True:  # a burst of releases (lockstep window): report once
+                    self._last_tick = self._ticks.get_nowait()
+            except queue.Empty:
+                pass
             now_t = self.clock()
             snap = self.snapshot()
             period = max(now_t - last_t, 1e-9)
             capacity = period / uart_s(1, self.config.baud)  # bytes the UART carries per period
-            snap["period_s"] = period
-            snap["uart_out_load"] = (snap["uart_out_bytes"] - last["uart_out_bytes"]) / capacity
-            snap["uart_in_load"] = (snap["uart_in_bytes"] - last["uart_in_bytes"]) / capacity
+            air = snap["air_s"] - last["air_s"]
+            out_load = (snap["uart_out_bytes"] - last["uart_out_bytes"]) / capacity
+            in_load = (snap["uart_in_bytes"] - last["uart_in_bytes"]) / capacity
+            failures = sum(r["tx_failures"] for r in snap["robots"].values()) - sum(
+                r["tx_failures"] for r in last["robots"].values()
+            )
+            retries = sum(r["retries"] for r in snap["robots"].values()) - sum(
+                r["retries"] for r in last["robots"].values()
+            )
+            k, t = self._last_tick
+            message = {
+                "k": k,
+                "t": t,
+                "fields": list(STATS_FIELDS),
+                "values": [air, air / period, out_load, in_load, failures, retries],
+                "period_s": period,
+                "rssi_dbm": {n: r["rssi_dbm"] for n, r in snap["robots"].items()},
+                "totals": snap,
+            }
             with contextlib.suppress(zenoh.ZError):
-                self._stats_pub.put(json.dumps(snap))
+                self._stats_pub.put(json.dumps(message))
             last, last_t = snap, now_t

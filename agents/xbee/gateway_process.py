@@ -5,6 +5,10 @@ session (principal ``gateway``), starts the simulated coordinator when ``[gatewa
 "sim"`` (one simulated radio per ``xbee://`` agent, its robot reached through
 ``agent/<name>/link/robot/{in,out}``), then runs the :class:`~.gateway.Gateway` until SIGTERM /
 SIGINT. It prints ``READY <port>`` on stdout once the coordinator answered.
+
+The simulated coordinator takes fault commands on ``gateway/sim`` (JSON, for tests and demos):
+``{"out_of_range": "<agent>"}``, ``{"in_range": "<agent>"}``, ``{"unplug": true}``,
+``{"replug": true}``.
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import queue
 import signal
 import sys
 import threading
@@ -98,6 +103,7 @@ def serve(plan: GatewayPlan, endpoints: Sequence[str], stop: threading.Event) ->
     keys = bus.BusKeys(plan.experiment)
     session = bus.open_session(bus.client_config(endpoints))
     coordinator: SimCoordinator | None = None
+    faults: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
     try:
         port_url = None
         if config.simulated:
@@ -113,6 +119,13 @@ def serve(plan: GatewayPlan, endpoints: Sequence[str], stop: threading.Event) ->
                 air=Air(seed=config.seed, default_loss=config.loss),
             ).start()
             port_url = coordinator.url
+        if coordinator is not None:
+            session.declare_subscriber(
+                keys.gateway("sim"), lambda sample: faults.put(sample.payload.to_bytes())
+            )
+            threading.Thread(
+                target=_apply_faults, args=(coordinator, plan, faults), daemon=True
+            ).start()
         with Gateway(config, keys, plan.robots, session, port_url=port_url) as gateway:
             sys.stdout.write(f"READY {gateway.port_url} {gateway.family.value}\n")
             sys.stdout.flush()
@@ -123,9 +136,31 @@ def serve(plan: GatewayPlan, endpoints: Sequence[str], stop: threading.Event) ->
         sys.stderr.write(f"hilswarm gateway: {exc}\n")
         return 1
     finally:
+        faults.put(None)
         if coordinator is not None:
             coordinator.stop()
         session.close()
+
+
+def _apply_faults(
+    coordinator: SimCoordinator, plan: GatewayPlan, commands: queue.SimpleQueue[bytes | None]
+) -> None:
+    """Apply the fault commands of ``gateway/sim`` (off the bus callback: unplugging blocks)."""
+    while (data := commands.get()) is not None:
+        try:
+            command = json.loads(data)
+            if "out_of_range" in command:
+                coordinator.set_out_of_range(plan.robots[command["out_of_range"]])
+            if "in_range" in command:
+                coordinator.set_out_of_range(plan.robots[command["in_range"]], False)
+            if command.get("unplug"):
+                coordinator.unplug()
+            if command.get("replug"):
+                coordinator.replug()
+        except (ValueError, KeyError, TypeError) as exc:
+            _log.warning("gateway/sim: command %r not understood: %s", data[:200], exc)
+        else:
+            _log.info("gateway/sim: applied %s", data[:200].decode(errors="replace"))
 
 
 def main(argv: Sequence[str] | None = None) -> int:

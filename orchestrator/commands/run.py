@@ -5,6 +5,7 @@ Example::
     hilswarm run graphs/lead_follow.toml
     hilswarm run graphs/lead_follow.toml --link leader=/dev/ttyUSB0 --mode realtime
     hilswarm run graphs/consensus_ring.toml --out out/ring.mcap --duration 5
+    hilswarm run graphs/lead_follow.toml --mode realtime --live      # watch it in Foxglove
 
 Ctrl-C (or ``hilswarm stop EXP`` from another terminal) brings every agent to safe mode, stops
 it, and closes the recording properly. Exit status: 0 completed or stopped on request, 1 the
@@ -35,6 +36,7 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
+from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_summary import RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay
@@ -82,6 +84,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ANSWER_TIMEOUT_S,
         metavar="SECONDS",
         help="lockstep: an agent silent this long on one tick is lost [s]",
+    )
+    parser.add_argument(
+        "--live",
+        nargs="?",
+        type=int,
+        const=0,
+        default=None,
+        metavar="PORT",
+        help="serve the run live to the Foxglove app (WebSocket on localhost; PORT default: "
+        "a free one, printed as a ws:// URL)",
     )
     parser.add_argument(
         "--remote-gateway",
@@ -134,7 +146,7 @@ def run(args: argparse.Namespace) -> int:
     out = args.out or default_output(experiment, datetime.datetime.now())
     endpoints = list(args.connect) or [bus.loopback_endpoint(args.port)]
     display = StatusDisplay(sys.stdout)
-    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns())
+    recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns(), live_port=args.live)
     launcher = AgentLauncher(
         endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
     )
@@ -158,10 +170,14 @@ def run(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     summary: RunSummary | None = None
     error = ""
+    mocap = MocapRunner(experiment, endpoints) if experiment.mocap is not None else None
     try:
         manager.open()
         if gateway is not None:
             display.log(f"XBee gateway: {gateway.start()}")
+        if mocap is not None:
+            mocap.start()
+            mocap.wait_ready()
         launcher.start_all(
             [
                 agent_config_for(experiment, n)
@@ -175,14 +191,25 @@ def run(args: argparse.Namespace) -> int:
         )
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
+        if recorder.live_url:
+            display.log("live view: open this in the Foxglove app (Open connection):")
+            display.log(recorder.live_url)
         summary = manager.run()
-    except (ManagerError, AgentProcessError, RecordingError, GatewayProcessError) as exc:
+    except (
+        ManagerError,
+        AgentProcessError,
+        RecordingError,
+        GatewayProcessError,
+        MocapError,
+    ) as exc:
         error = str(exc)
     finally:
         display.finish()
         launcher.stop()
         if gateway is not None:
             gateway.stop()
+        if mocap is not None:
+            mocap.stop()
         manager.close()
         if recorder.close() != 0 and not error:
             error = f"the recording {out} is incomplete (see the recorder's log above)"

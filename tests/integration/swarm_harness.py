@@ -55,17 +55,22 @@ def child_pids(pid: int) -> list[int]:
     return children
 
 
-def agent_pids(pid: int) -> list[int]:
-    """Children of ``pid`` that are agent processes (not the recorder process)."""
-    agents = []
+def children_running(pid: int, module: bytes) -> list[int]:
+    """Children of ``pid`` whose command line contains ``module`` (bytes)."""
+    found = []
     for child in child_pids(pid):
         try:
             command = Path(f"/proc/{child}/cmdline").read_bytes()
         except OSError:
             continue
-        if b"hilswarm.agents.agent" in command:
-            agents.append(child)
-    return agents
+        if module in command:
+            found.append(child)
+    return found
+
+
+def agent_pids(pid: int) -> list[int]:
+    """Children of ``pid`` that are agent processes (not the recorder process)."""
+    return children_running(pid, b"hilswarm.agents.agent")
 
 
 def pid_alive(pid: int) -> bool:

@@ -3,13 +3,15 @@ the real firmware in simavr behind its simulated radio, through the gateway proc
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from hilswarm.agents import bus
 from hilswarm.agents.errors import SimulatorError
 from hilswarm.agents.link.simavr import locate_build
-from swarm_harness import REPO, RunProcess, free_port, read_recording
+from swarm_harness import REPO, RunProcess, connect_spy, free_port, read_recording, wait_for
 
 pytestmark = [pytest.mark.integration, pytest.mark.firmware, pytest.mark.slow]
 
@@ -39,3 +41,68 @@ def test_xbee_swarm_demo_runs_and_every_robot_moves(runs: list[RunProcess], tmp_
         ys = recording[f"/{name}/y"]
         assert len(ys) == 60, name
         assert ys[-1]["x"] > x0 + 0.1, (name, ys[-1])  # it drove forward: the loop is closed
+
+
+def _variant(tmp_path: Path) -> Path:
+    """The demo, realtime, going on when an agent goes safe or is lost, 6 s."""
+    text = (REPO / "graphs" / "xbee_swarm.toml").read_text()
+    text = text.replace('mode = "lockstep"', 'mode = "realtime"\non_agent_safe = "continue"')
+    text = text.replace('on_agent_loss = "stop"', 'on_agent_loss = "continue"')
+    text = text.replace("duration_s = 30.0", "duration_s = 6.0")
+    path = tmp_path / "xbee_faults.toml"
+    path.write_text(text)
+    return path
+
+
+def _put_when_running(run: RunProcess, commands: list[tuple[int, dict]]) -> None:
+    """Send each fault command on gateway/sim once the run's tick k was released."""
+    spy = connect_spy(run, "xbee_swarm", timeout_s=60.0)
+    try:
+        for k, command in commands:
+            wait_for(lambda k=k: spy.last_tick() >= k, 60.0, f"tick {k}")
+            spy.session.put(bus.BusKeys("xbee_swarm").gateway("sim"), json.dumps(command))
+    finally:
+        spy.close()
+
+
+def test_robot_out_of_range_goes_safe_and_the_others_go_on(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    try:
+        locate_build("duemilanove")
+    except SimulatorError as exc:
+        pytest.skip(str(exc))
+    run = RunProcess(tmp_path, _variant(tmp_path), port=free_port())
+    runs.append(run)
+    _put_when_running(run, [(20, {"out_of_range": "f3"})])
+    assert run.wait(300) == 0, run.output()
+    recording = read_recording(run.out)
+    f3 = [m for m in recording["/f3/status"] if m["state"] == "safe"]
+    assert f3 and "BoardTimeoutError" in f3[0]["detail"], recording["/f3/status"]
+    assert f3[0]["k"] >= 18  # the fault came with tick 20 (an agent may still be on 19)
+    for name in ("leader", "f1", "f2", "f4", "f5"):  # safe only at the end of the run
+        failures = [m for m in recording[f"/{name}/status"] if "Error" in m.get("detail", "")]
+        assert not failures, (name, failures)
+    assert recording["/leader/y"][-1]["k"] >= 100
+    stats = recording["/gateway/stats"]
+    assert sum(m["values"][4] for m in stats) > 0  # TX failures counted
+    assert stats[-1]["totals"]["robots"]["f3"]["tx_failures"] > 0
+
+
+def test_coordinator_unplugged_every_xbee_agent_goes_safe_then_it_reconnects(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    try:
+        locate_build("duemilanove")
+    except SimulatorError as exc:
+        pytest.skip(str(exc))
+    run = RunProcess(tmp_path, _variant(tmp_path), port=free_port())
+    runs.append(run)
+    _put_when_running(run, [(20, {"unplug": True}), (30, {"replug": True})])
+    assert run.wait(300) == 0, run.output()
+    recording = read_recording(run.out)
+    for name in ("leader", "f1", "f2", "f3", "f4", "f5"):
+        safe = [m for m in recording[f"/{name}/status"] if m["state"] == "safe"]
+        assert safe and safe[0]["k"] >= 18, (name, recording[f"/{name}/status"])
+    states = [m["state"] for m in recording["/gateway/status"]]
+    assert states[:3] == ["connected", "disconnected", "connected"], states

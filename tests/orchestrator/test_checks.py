@@ -189,6 +189,14 @@ def test_link_override_is_checked_deeply(capsys: pytest.CaptureFixture[str]) -> 
     assert main(["check", str(path), "--link", "leader=gopher://x"]) == 2
     assert f"{path}:agents.leader.link: link URL 'gopher://x'" in capsys.readouterr().err
     assert main(["check", str(path), "--link", "leader=sim://duemilanove"]) == 0
+    # A real board gives no pose and lead_follow.toml has no [mocap]: the leader cannot run.
+    assert main(["check", str(path), "--link", "leader=socket://127.0.0.1:5760"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:agents.leader.link: agent 'leader': vehicle 'frisbee' needs a pose" in err
+    assert "[mocap]" in err
+    # With a mocap system the same override is fine (its bodies come from the simulator).
+    mocap = GRAPHS / "lead_follow_mocap.toml"
+    assert main(["check", str(mocap), "--link", "leader=socket://127.0.0.1:5760"]) == 0
 
 
 @pytest.mark.parametrize(
@@ -236,7 +244,8 @@ def test_vehicle_that_needs_a_pose_on_a_real_link_needs_mocap(tmp_path: Path) ->
     # simulated boards simulate the motion capture too
     assert check_file(path, overrides={"links": {"leader": "simavr://uno"}}).ok
     # with a [mocap] table the pose comes from it
-    text = path.read_text() + '\n[mocap]\nsystem = "sim"\n'
+    text = path.read_text().replace('mode = "lockstep"', 'mode = "realtime"')
+    text += '\n[mocap]\nsystem = "sim"\n'
     with_mocap = tmp_path / "lead_follow.toml"
     with_mocap.write_text(text)
     assert check_file(with_mocap, overrides={"links": {"leader": "socket://127.0.0.1:5760"}}).ok
@@ -255,6 +264,7 @@ def test_vehicle_that_needs_a_pose_on_a_real_link_needs_mocap(tmp_path: Path) ->
         "lead_follow.toml",
         "consensus_ring.toml",
         "consensus_ring_file.toml",
+        "lead_follow_mocap.toml",
     ],
 )
 def test_example_files_are_valid(name: str, capsys: pytest.CaptureFixture[str]) -> None:

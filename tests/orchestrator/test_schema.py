@@ -125,17 +125,19 @@ def test_run_policies_defaults_and_values(tmp_path: Path) -> None:
     assert experiment.on_recording_failure == "stop"
     assert experiment.max_late_fraction == 0.01
     assert experiment.mocap is None and experiment.gateway is None
-    assert experiment.agent("a").mocap_body == "a"
+    assert experiment.agent("a").body == "a" and experiment.agent("a").mocap_body is None
     path = write(
         tmp_path,
         experiment='on_recording_failure = "continue"\nmax_late_fraction = 0.05',
         agent_a='mocap_body = "frisbee-7"',
+        rest='[mocap]\nsystem = "sim"',
     )
+    path.write_text(path.read_text().replace("duration_s = 2", 'duration_s = 2\nmode = "realtime"'))
     experiment = load_experiment(path)
     assert experiment.on_recording_failure == "continue"
     assert experiment.max_late_fraction == 0.05
-    assert experiment.agent("a").mocap_body == "frisbee-7"
-    assert experiment.agent("b").mocap_body == "b"
+    assert experiment.agent("a").body == "frisbee-7"
+    assert experiment.agent("b").body == "b"
     found = problems(write(tmp_path, experiment='on_recording_failure = "retry"'))
     assert "'retry' is not one of 'stop', 'continue'" in found["experiment.on_recording_failure"]
     found = problems(write(tmp_path, experiment="max_late_fraction = 1.5"))
@@ -145,13 +147,13 @@ def test_run_policies_defaults_and_values(tmp_path: Path) -> None:
 def test_mocap_and_gateway_tables(tmp_path: Path) -> None:
     path = write(
         tmp_path,
+        experiment='mode = "realtime"',
         rest=textwrap.dedent(
             """
             [mocap]
             system = "optitrack"
             host = "192.168.1.10"
             rate_hz = 240
-            [mocap.options]
             up_axis = "y"
 
             [gateway]
@@ -164,12 +166,19 @@ def test_mocap_and_gateway_tables(tmp_path: Path) -> None:
     experiment = load_experiment(path)
     assert experiment.mocap is not None and experiment.mocap.system == "optitrack"
     assert experiment.mocap.host == "192.168.1.10" and experiment.mocap.rate_hz == 240.0
-    assert experiment.mocap.options == {"up_axis": "y"}
-    assert experiment.mocap.noise_std_m == 0.0
+    assert experiment.mocap.up_axis == "y" and experiment.mocap.hold_frames == 10
     assert experiment.gateway is not None and experiment.gateway.api_mode == 1
     assert experiment.gateway.baud == 57600
-    sim = load_experiment(write(tmp_path, rest='[mocap]\nsystem = "sim"\nnoise_std_m = 0.002'))
-    assert sim.mocap is not None and sim.mocap.noise_std_m == 0.002
+    sim = load_experiment(
+        write(
+            tmp_path,
+            experiment='mode = "realtime"',
+            rest='[mocap]\nsystem = "sim"\n[mocap.sim]\nnoise_std_m = 0.002\n'
+            "occlusions = { a = [1.0, 2.0] }",
+        )
+    )
+    assert sim.mocap is not None and sim.mocap.host == "127.0.0.1"
+    assert sim.mocap.sim.noise_std_m == 0.002 and sim.mocap.sim.occlusions == {"a": (1.0, 2.0)}
 
     found = problems(
         write(
@@ -181,6 +190,13 @@ def test_mocap_and_gateway_tables(tmp_path: Path) -> None:
     assert "0 Hz is out of range; expected rate_hz > 0" in found["mocap.rate_hz"]
     assert found["mocap.colour"].startswith("unknown key; expected one of system, host")
     assert "3 is not one of 1, 2" in found["gateway.api_mode"]
+    found = problems(write(tmp_path, rest='[mocap]\nsystem = "vicon"\n'))
+    assert found["mocap.host"].startswith("missing")
+    assert "realtime" in found["experiment.mode"]  # a mocap system runs on the wall clock
+    found = problems(
+        write(tmp_path, rest='[mocap]\nsystem = "sim"\n[mocap.sim]\nocclusions = { a = [2, 1] }')
+    )
+    assert "is not [start_s, end_s]" in found["mocap.sim.occlusions.a"]
     found = problems(write(tmp_path, rest='[gateway]\nport = ""\nbaud = 1000\n'))
     assert found["gateway.port"] == "must not be empty"
     found = problems(write(tmp_path, rest="[gateway]\nbaud = 1000\n"))

@@ -1,0 +1,280 @@
+"""An agent's pose from the experiment's mocap process: its own body's key on the bus.
+
+:class:`MocapPoseSource` is the vehicle's ``pose_source`` when the experiment has a
+``[mocap]`` section. It subscribes to exactly one body key (``hilswarm/<exp>/mocap/<body>``)
+and to the mocap process's status. The subscription callbacks only decode and store the newest
+message (no blocking, no work); :meth:`MocapPoseSource.pose`, called once per tick when the
+vehicle senses, decides:
+
+* the newest filtered pose (world frame, :mod:`hilswarm.agents.mocap.frames`) while the body
+  is seen or occluded for at most ``hold_frames`` frames (the pose is then held);
+* otherwise **no stale pose**: it calls ``on_lost("lost tracking: ...")`` (the vehicle enters
+  safe mode; the agent goes safe with that reason and the experiment's ``on_agent_safe``
+  policy applies) and returns NaN. The reasons: the body occluded for more than
+  ``hold_frames`` frames; no message for longer than ``hold_s`` (the mocap process or its
+  server is gone); the mocap process reporting its server lost.
+
+A controller that ``uses_neighbour_poses`` also gets its graph neighbours' bodies
+(:meth:`MocapPoseSource.neighbour_poses`; each an explicit key, nothing else is received).
+
+With ``system = "sim"`` it also publishes its simulated plant's true world pose on
+``mocap_truth/<body>`` at each sense (and once at start) — what the simulated cameras see.
+
+Per tick it appends to the vehicle's telemetry channel ``mocap`` (:data:`TELEMETRY_FIELDS`):
+frame number, frame time [s], latency frame time -> this sense [s] (same host only), frames
+occluded, the pose as position + quaternion (for ``/<agent>/pose``) and the filter's
+innovation.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import zenoh
+from hilswarm.agents import bus
+from hilswarm.agents.errors import HilswarmError
+from hilswarm.agents.mocap import message
+from hilswarm.agents.mocap.frames import world_to_ned, yaw_quaternion
+
+logger = logging.getLogger(__name__)
+
+#: Fields of the ``mocap`` telemetry channel.
+TELEMETRY_FIELDS: tuple[str, ...] = (
+    "frame",
+    "frame_time_s",
+    "latency_s",
+    "occluded",
+    "x",
+    "y",
+    "z",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "innovation_x",
+    "innovation_y",
+    "innovation_z",
+    "innovation_yaw",
+)
+CHANNEL = "mocap"
+_NAN_POSE = np.full(6, np.nan)
+_NAN_POSE.setflags(write=False)
+
+
+class MocapBodyMissingError(HilswarmError, LookupError):
+    """The agent's body was not seen by the mocap system at start."""
+
+
+class MocapPoseSource:
+    """One agent's pose from the bus (see the module docstring).
+
+    Args:
+        body: the rigid body's name.
+        hold_frames: frames an occluded body's pose is held before tracking counts as lost.
+        hold_s: longest time without a message before tracking counts as lost [s].
+        start_timeout_s: bound on waiting for the first pose (:meth:`wait_first`) [s].
+        truth: the simulated plant (``pose()`` in its ``pose_frame``) to feed the simulator,
+            or ``None``.
+        on_lost: called once with the reason when tracking is lost (``vehicle.enter_safe_mode``).
+        clock: monotonic clock [s] (CLOCK_MONOTONIC: latencies are compared across processes).
+    """
+
+    #: Poses come in the world frame (z up).
+    frame = "world"
+
+    def __init__(
+        self,
+        body: str,
+        *,
+        hold_frames: int,
+        hold_s: float,
+        start_timeout_s: float = 5.0,
+        truth: Any | None = None,
+        on_lost: Callable[[str], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.body = bus.check_key_name(body, what="mocap body")
+        self.hold_frames = int(hold_frames)
+        self.hold_s = float(hold_s)
+        self.start_timeout_s = float(start_timeout_s)
+        self._truth = truth
+        self._on_lost = on_lost
+        self._clock = clock
+        self._latest: tuple[message.BodyPose, float] | None = None  # (message, arrival [s])
+        #: Graph neighbours whose poses the controller asks for: agent name -> body.
+        self.neighbours: dict[str, str] = {}
+        self._neighbour_latest: dict[str, tuple[message.BodyPose, float]] = {}
+        self._status: dict[str, Any] = {}
+        self._first = threading.Event()
+        self._truth_pub: zenoh.Publisher | None = None
+        self._channel: Any = None
+        self._row = np.full(len(TELEMETRY_FIELDS), np.nan)
+        self.lost_reason: str | None = None
+        #: Latency [s] frame time -> sense of every pose used (benchmarks read it).
+        self.latencies: list[float] = []
+        self.keep_latencies = False
+
+    # -- wiring ------------------------------------------------------------------------------
+
+    def add_telemetry(self, telemetry: Any) -> None:
+        """Add the ``mocap`` channel to the vehicle's telemetry (before the agent declares)."""
+        self._channel = telemetry.add_channel(CHANNEL, TELEMETRY_FIELDS)
+
+    def attach_bus(self, session: zenoh.Session, keys: bus.BusKeys) -> list[Any]:
+        """Subscribe to this body and to the mocap status; returns the entities to keep."""
+        entities: list[Any] = [
+            session.declare_subscriber(
+                keys.mocap(self.body), zenoh.handlers.Callback(self._on_pose, indirect=False)
+            ),
+            session.declare_subscriber(
+                keys.mocap_status, zenoh.handlers.Callback(self._on_status, indirect=False)
+            ),
+        ]
+        for agent, body in self.neighbours.items():
+            entities.append(
+                session.declare_subscriber(
+                    keys.mocap(body),
+                    zenoh.handlers.Callback(
+                        lambda sample, agent=agent: self._on_neighbour(agent, sample),
+                        indirect=False,
+                    ),
+                )
+            )
+        if self._truth is not None:
+            self._truth_pub = session.declare_publisher(keys.mocap_truth(self.body), **bus.DATA_QOS)
+            entities.append(self._truth_pub)
+            self._publish_truth()
+        return entities
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        try:
+            decoded = message.decode(sample.payload.to_bytes())
+        except bus.BusMessageError as exc:
+            logger.warning("mocap body %s: %s", self.body, exc)
+            return
+        self._latest = (decoded, self._clock())
+        if not decoded.occluded:
+            self._first.set()
+
+    def _on_neighbour(self, agent: str, sample: zenoh.Sample) -> None:
+        try:
+            self._neighbour_latest[agent] = (
+                message.decode(sample.payload.to_bytes()),
+                self._clock(),
+            )
+        except bus.BusMessageError as exc:
+            logger.warning("mocap body of neighbour %s: %s", agent, exc)
+
+    def _on_status(self, sample: zenoh.Sample) -> None:
+        try:
+            status = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        if isinstance(status, dict):
+            self._status = status
+
+    def wait_first(self) -> None:
+        """Wait (bounded by ``start_timeout_s``) until the body has been seen once.
+
+        Raises:
+            MocapBodyMissingError: not seen in time; names the bodies the system does see.
+        """
+        deadline = time.monotonic() + self.start_timeout_s
+        while not self._first.wait(0.05):
+            if self._truth is not None:
+                self._publish_truth()
+            if time.monotonic() > deadline:
+                seen = self._status.get("visible")
+                state = self._status.get("state")
+                if state is None:
+                    also = "no mocap process answered (is [mocap] running?)"
+                else:
+                    also = "the system sees: " + (", ".join(seen) if seen else "no bodies")
+                raise MocapBodyMissingError(
+                    f"mocap body {self.body!r} is not visible after {self.start_timeout_s:g} s; "
+                    f"{also}"
+                )
+
+    # -- per tick ----------------------------------------------------------------------------
+
+    def _publish_truth(self) -> None:
+        publisher, plant = self._truth_pub, self._truth
+        if publisher is None or plant is None:
+            return
+        pose = np.asarray(plant.pose(), dtype=np.float64).reshape(6)
+        if getattr(plant, "pose_frame", "world") == "ned":
+            pose = world_to_ned(pose)  # its own inverse: NED -> world
+        publisher.put(message.encode_truth(pose))
+
+    def lost(self) -> str | None:
+        """Why tracking is lost now, or ``None`` while the pose may be used."""
+        return self._why_lost(self.body, self._latest)
+
+    def _why_lost(self, body: str, latest: tuple[message.BodyPose, float] | None) -> str | None:
+        if self._status.get("state") == "lost":
+            return f"lost tracking: mocap server lost ({self._status.get('detail', '')})"
+        if latest is None:
+            return f"lost tracking: no pose of body {body!r} received"
+        pose, arrived = latest
+        if pose.occluded > self.hold_frames:
+            return f"lost tracking: body {body!r} not seen for {pose.occluded} frames"
+        age = self._clock() - arrived
+        if age > self.hold_s:
+            return f"lost tracking: no mocap frame for {age:.3f} s (mocap process silent)"
+        return None
+
+    def neighbour_poses(self) -> dict[str, np.ndarray | None]:
+        """The neighbours' newest poses (world frame) by agent name; ``None``: lost or unseen
+        (the same rules as the agent's own body, no stale pose)."""
+        poses: dict[str, np.ndarray | None] = {}
+        for agent, body in self.neighbours.items():
+            latest = self._neighbour_latest.get(agent)
+            lost = self._why_lost(body, latest)
+            poses[agent] = None if lost is not None or latest is None else latest[0].pose.copy()
+        return poses
+
+    def pose(self) -> np.ndarray:
+        """The body's pose ``[x, y, z (m), roll, pitch, yaw (rad)]`` (world frame), or NaN."""
+        self._publish_truth()
+        reason = self.lost_reason or self.lost()
+        row = self._row
+        if reason is not None:
+            if self.lost_reason is None:
+                self.lost_reason = reason
+                logger.warning("mocap body %s: %s", self.body, reason)
+                if self._on_lost is not None:
+                    self._on_lost(reason)
+            row[:] = np.nan
+            return _NAN_POSE.copy()
+        latest = self._latest[0]  # type: ignore[index]  # lost() checked it
+        latency = latest.latency_s(self._clock())
+        if self.keep_latencies:
+            self.latencies.append(latency)
+        p = latest.pose
+        qx, qy, qz, qw = yaw_quaternion(float(p[3]), float(p[4]), float(p[5]))
+        row[:] = (
+            latest.frame,
+            latest.frame_time_s,
+            latency,
+            latest.occluded,
+            p[0],
+            p[1],
+            p[2],
+            qx,
+            qy,
+            qz,
+            qw,
+            *latest.innovation.tolist(),
+        )
+        return p.copy()
+
+    def record(self, k: int, t: float) -> None:
+        """Append this tick's row to the ``mocap`` telemetry channel (the vehicle calls it)."""
+        if self._channel is not None:
+            self._channel.append(k, t, self._row)

@@ -1,0 +1,200 @@
+"""The mocap process on a real Zenoh bus: poses to the agent's pose source, occlusion hold ->
+"lost tracking", and the server's loss reported with no stale pose used.
+
+A router session on a free loopback port stands in for the orchestrator's; the simulator and
+the real client (qtm-rt) run in this process on threads; every wait is bounded.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+import zenoh
+from hilswarm.agents import bus
+from hilswarm.agents.control import Controller, ControlModel, TickInput
+from hilswarm.agents.mocap import message
+from hilswarm.agents.mocap.clients import QualisysClient
+from hilswarm.agents.mocap.config import MocapSettings
+from hilswarm.agents.mocap.pose_source import MocapPoseSource
+from hilswarm.agents.mocap.process import MocapProcess
+from hilswarm.agents.mocap.qtm_sim import QtmSimulator, SimSettings
+from hilswarm.agents.telemetry import Telemetry
+
+EXPERIMENT = "mocap_bus"
+TIMEOUT_S = 30.0
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = TIMEOUT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def router() -> Iterator[list[str]]:
+    endpoints = [bus.loopback_endpoint(free_port())]
+    session = bus.open_session(bus.listen_config(endpoints))
+    try:
+        yield endpoints
+    finally:
+        session.close()
+
+
+class Rig:
+    """Simulator + mocap process (thread) + one agent-side pose source, on one bus."""
+
+    def __init__(
+        self,
+        endpoints: list[str],
+        sim: SimSettings,
+        *,
+        hold_frames: int,
+        neighbours: dict[str, str] | None = None,
+    ) -> None:
+        self.sim = QtmSimulator(sim)
+        self.sim.start()
+        settings = MocapSettings(system="sim", rate_hz=sim.rate_hz, hold_frames=hold_frames)
+        self.process = MocapProcess(
+            settings, EXPERIMENT, sim.bodies, endpoints,
+            client=QualisysClient("127.0.0.1", self.sim.port),
+        )  # fmt: skip
+        self.exit_code: list[int] = []
+        self.thread = threading.Thread(
+            target=lambda: self.exit_code.append(self.process.run()), daemon=True
+        )
+        self.thread.start()
+        self.session = bus.open_session(bus.client_config(endpoints))
+        self.lost: list[str] = []
+        self.source = MocapPoseSource(
+            sim.bodies[0], hold_frames=hold_frames, hold_s=settings.hold_s,
+            start_timeout_s=10.0, on_lost=self.lost.append,
+        )  # fmt: skip
+        self.source.neighbours = dict(neighbours or {})
+        self.telemetry = Telemetry()
+        self.source.add_telemetry(self.telemetry)
+        self.entities = self.source.attach_bus(self.session, bus.BusKeys(EXPERIMENT))
+
+    def close(self) -> None:
+        self.process.stop()
+        self.thread.join(10.0)
+        self.sim.close()
+        self.entities.clear()
+        self.session.close()
+
+
+def test_poses_reach_the_agent_filtered_in_the_world_frame(router: list[str]) -> None:
+    rig = Rig(router, SimSettings(bodies=("f1", "f2"), rate_hz=100.0), hold_frames=5)
+    try:
+        truth = np.array([0.5, -0.25, 0.0, 0.0, 0.0, 1.0])
+        rig.sim.set_truth("f1", truth)
+        rig.sim.set_truth("f2", truth + 1.0)
+        rig.source.wait_first()
+        wait_for(lambda: np.allclose(rig.source.pose(), truth, atol=1e-4), "the filtered pose")
+        rig.source.record(0, 0.0)
+        row = rig.telemetry["mocap"]
+        assert len(row) == 1
+        assert not rig.lost
+        # The process publishes exactly the bodies it was given, each on its own key.
+        got: list[bytes] = []
+        sub = rig.session.declare_subscriber(
+            bus.BusKeys(EXPERIMENT).mocap("f2"),
+            zenoh.handlers.Callback(lambda s: got.append(s.payload.to_bytes()), indirect=False),
+        )
+        wait_for(lambda: len(got) >= 3, "f2's poses")
+        np.testing.assert_allclose(message.decode(got[-1]).pose, truth + 1.0, atol=1e-4)
+        del sub
+    finally:
+        rig.close()
+
+
+def test_an_occlusion_longer_than_the_hold_means_lost_tracking(router: list[str]) -> None:
+    sim = SimSettings(bodies=("f1",), rate_hz=100.0, occlusions={"f1": (0.5, 10.0)})
+    rig = Rig(router, sim, hold_frames=10)
+    try:
+        rig.sim.set_truth("f1", np.zeros(6))
+        rig.source.wait_first()
+        occluded_but_held = []
+
+        def lost() -> bool:
+            pose = rig.source.pose()
+            latest = rig.source._latest
+            if np.all(np.isfinite(pose)) and latest is not None and latest[0].occluded:
+                occluded_but_held.append(latest[0].occluded)
+            return not np.all(np.isfinite(pose))
+
+        wait_for(lost, "tracking to be lost")
+        assert rig.lost and rig.lost[0].startswith("lost tracking: body 'f1' not seen for")
+        # Held while occluded for at most hold_frames frames (polled at least once in 0.1 s).
+        assert occluded_but_held and max(occluded_but_held) <= 10
+        assert np.all(np.isnan(rig.source.pose()))  # latched: no pose afterwards
+        assert len(rig.lost) == 1
+    finally:
+        rig.close()
+
+
+def test_the_server_lost_is_reported_and_no_stale_pose_is_used(router: list[str]) -> None:
+    rig = Rig(router, SimSettings(bodies=("f1",), rate_hz=100.0), hold_frames=50)
+    try:
+        rig.sim.set_truth("f1", np.ones(6) * 0.1)
+        rig.source.wait_first()
+        assert np.all(np.isfinite(rig.source.pose()))
+        rig.sim.close()  # the mocap server disappears
+        wait_for(lambda: bool(rig.exit_code), "the mocap process to end")
+        assert rig.exit_code == [1]
+        wait_for(lambda: not np.all(np.isfinite(rig.source.pose())), "the pose to be refused")
+        assert "mocap server lost" in rig.lost[0]
+    finally:
+        rig.close()
+
+
+def test_a_body_never_seen_is_named_with_the_visible_ones(router: list[str]) -> None:
+    rig = Rig(router, SimSettings(bodies=("ghost", "f2"), rate_hz=100.0), hold_frames=5)
+    rig.source.start_timeout_s = 1.5
+    try:
+        rig.sim.set_truth("f2", np.zeros(6))
+        wait_for(lambda: rig.source._status.get("visible") == ["f2"], "the status")
+        with pytest.raises(LookupError, match=r"'ghost' is not visible .* sees: f2"):
+            rig.source.wait_first()
+    finally:
+        rig.close()
+
+
+class PoseReader(Controller):
+    """Returns the x of its neighbour ``n2``'s mocap pose as u (NaN-free: 0 while lost)."""
+
+    uses_neighbour_poses = True
+
+    def step(self, tick: TickInput, x_hat: np.ndarray, params: object) -> tuple:
+        pose = tick.neighbour_poses.get("n2")
+        return np.array([0.0 if pose is None else pose[0]]), x_hat
+
+
+def test_a_controller_that_asks_gets_its_neighbours_poses(router: list[str]) -> None:
+    sim = SimSettings(bodies=("f1", "f2", "f3"), rate_hz=100.0)
+    rig = Rig(router, sim, hold_frames=5, neighbours={"n2": "f2"})
+    try:
+        rig.sim.set_truth("f1", np.zeros(6))
+        rig.sim.set_truth("f2", np.array([0.75, 0.5, 0.0, 0.0, 0.0, 0.25]))
+        rig.sim.set_truth("f3", np.ones(6))
+        rig.source.wait_first()
+        model = ControlModel(PoseReader(), dt=0.05, n_inputs=1, n_outputs=1)
+        model.neighbour_poses = rig.source.neighbour_poses
+        wait_for(lambda: rig.source.neighbour_poses()["n2"] is not None, "the neighbour's pose")
+        assert set(rig.source.neighbour_poses()) == {"n2"}  # only the neighbour it was given
+        u = model.step(np.zeros(1), np.zeros(1))
+        assert u[0] == pytest.approx(0.75, abs=1e-4)
+    finally:
+        rig.close()

@@ -1,0 +1,105 @@
+"""``[mocap]`` in experiment files, ``hilswarm check`` and ``hilswarm mocap`` against a server.
+
+The "real" system here is the protocol-level simulator on a free port, addressed as
+``system = "qualisys"`` (what a user with a Qualisys system writes).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hilswarm.agents.mocap.qtm_sim import QtmSimulator, SimSettings
+from hilswarm.orchestrator.cli import main
+from hilswarm.orchestrator.experiment import parse_experiment
+
+REPO = Path(__file__).resolve().parents[2]
+DEMO = (REPO / "graphs" / "lead_follow_mocap.toml").read_text()
+
+
+@pytest.fixture
+def qualisys() -> Iterator[QtmSimulator]:
+    """A 'Qualisys' system that sees frisbee1 and frisbee3 (frisbee2 is listed, not tracked)."""
+    with QtmSimulator(SimSettings(bodies=("frisbee1", "frisbee2", "frisbee3"))) as sim:
+        sim.set_truth("frisbee1", np.array([0.5, 0.25, 0.0, 0.0, 0.0, 0.5]))
+        sim.set_truth("frisbee3", np.zeros(6))
+        yield sim
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "experiment.toml"
+    path.write_text(text)
+    return path
+
+
+def real_system(port: int) -> str:
+    """The demo on a 'real' Qualisys system at ``port`` (no simulated cameras)."""
+    head, _, rest = DEMO.partition("\n[mocap]\n")
+    _, _, graph = rest.partition("\n[graph]\n")
+    return (
+        f'{head}\n[mocap]\nsystem = "qualisys"\nhost = "127.0.0.1"\nport = {port}\n'
+        f"rate_hz = 100.0\n\n[graph]\n{graph}"
+    )
+
+
+def test_check_names_a_body_the_system_does_not_see(
+    qualisys: QtmSimulator, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = write(tmp_path, real_system(qualisys.port))
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "agents.f1.mocap_body: body 'frisbee2' is not visible to qualisys" in err
+    assert "it sees: frisbee1, frisbee3" in err
+    assert "agents.leader" not in err and "agents.f2" not in err
+
+
+def test_hilswarm_mocap_lists_bodies_rate_and_world_pose(
+    qualisys: QtmSimulator, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["mocap", "--system", "qualisys", "--host", "127.0.0.1", "--port", str(qualisys.port)]
+    assert main([*argv, "--seconds", "0.5"]) == 0
+    out = capsys.readouterr().out
+    line = next(line for line in out.splitlines() if line.strip().startswith("frisbee1"))
+    assert line.split()[3:7] == ["0.500", "0.250", "0.000", "28.6"]  # m, m, m, deg
+    assert "not tracked" in next(line for line in out.splitlines() if "frisbee2" in line)
+    # With the experiment: the agent's body missing is named, exit 1.
+    path = write(tmp_path, real_system(qualisys.port))
+    assert main(["mocap", str(path), "--seconds", "0.5"]) == 1
+    captured = capsys.readouterr()
+    assert "MISSING" in captured.out and "not visible: frisbee2" in captured.err
+
+
+def test_hilswarm_mocap_refused_server_and_bad_input(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["mocap"]) == 2
+    assert "give an experiment file" in capsys.readouterr().err
+    assert main(["mocap", "--system", "qualisys", "--host", "127.0.0.1", "--port", "1"]) == 1
+    assert "cannot connect" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("change", "key", "reason"),
+    [
+        (('mode = "realtime"', 'mode = "lockstep"'), "experiment.mode", "wall clock"),
+        (('system = "sim"', 'system = "kinect"'), "mocap.system", "is not one of"),
+        (("hold_frames = 20", "hold_frames = 0"), "mocap.hold_frames", "frames >= 1"),
+        (("rate_hz = 100.0", "rate_hz = 0"), "mocap.rate_hz", "out of range"),
+        (("dropout_frames = 3", "dropout_frames = 3\nflicker = 1"), "mocap.sim.flicker", "unknown"),
+        (('mocap_body = "frisbee2"', 'mocap_body = "frisbee1"'), "agents.f1.mocap_body", "already"),
+        (('mocap_body = "frisbee2"', 'mocap_body = "a/b"'), "agents.f1.mocap_body", "letters"),
+    ],
+)
+def test_mocap_section_problems_are_reported(
+    tmp_path: Path, change: tuple[str, str], key: str, reason: str
+) -> None:
+    assert change[0] in DEMO
+    _, problems = parse_experiment(write(tmp_path, DEMO.replace(change[0], change[1], 1)))
+    assert any(p.key == key and reason in p.message for p in problems), problems
+
+
+def test_mocap_body_without_a_mocap_section_is_a_problem(tmp_path: Path) -> None:
+    head, _, rest = DEMO.partition("\n[mocap]\n")
+    _, _, graph = rest.partition("\n[graph]\n")
+    _, problems = parse_experiment(write(tmp_path, f"{head}\n[graph]\n{graph}"))
+    assert any(p.key == "agents.leader.mocap_body" for p in problems), problems
