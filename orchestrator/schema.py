@@ -179,17 +179,17 @@ class AgentTable(_Table):
     name)."""
 
 
-def _occlusion(window: tuple[float, float]) -> tuple[float, float]:
+def _occlusion(window: list[float]) -> list[float]:
     if not 0.0 <= window[0] < window[1]:
         raise PydanticCustomError(
             "occlusion",
             "{window!r} is not [start_s, end_s] with 0 <= start < end",
-            {"window": list(window)},
+            {"window": window},
         )
     return window
 
 
-Occlusion = Annotated[tuple[float, float], AfterValidator(_occlusion)]
+Occlusion = Annotated[list[float], Field(min_length=2, max_length=2), AfterValidator(_occlusion)]
 
 
 class MocapSimSection(_Table):
