@@ -23,6 +23,7 @@ consensus gain that the Euler step makes unstable).
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Container, Mapping
 from dataclasses import dataclass, field
@@ -128,7 +129,8 @@ def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
         _check_settings(parts.path, parts.settings, report)
     _check_shared_links(parts, report)
     _check_mocap_bodies(parts, report)
-    built = {name: _AgentCheck(parts, spec, report) for name, spec in parts.agents.items()}
+    shared: dict[tuple[str, str], _Outcome] = {}
+    built = {name: _AgentCheck(parts, spec, report, shared) for name, spec in parts.agents.items()}
     for check in built.values():
         check.build()
     output_sizes = {name: check.n_outputs for name, check in built.items()}
@@ -232,10 +234,33 @@ def _check_shared_links(parts: ExperimentParts, report: CheckReport) -> None:
 # -- per-agent checks --------------------------------------------------------------------------
 
 
-class _AgentCheck:
-    """Checks of one agent; :meth:`build` first, then :meth:`check_controller`."""
+@dataclass
+class _Outcome:
+    """What one shared check found: its value, and its problems/warnings by agent sub-key."""
 
-    def __init__(self, parts: ExperimentParts, spec: AgentSpec, report: CheckReport) -> None:
+    agent: str
+    value: Any
+    findings: list[tuple[bool, str, str]]  # (is a warning, sub-key, message)
+
+
+class _AgentCheck:
+    """Checks of one agent; :meth:`build` first, then :meth:`check_controller`.
+
+    Agents whose settings are the same (a swarm of identical robots) share the expensive
+    checks (building the vehicle, validating parameters, the dry controller step): each is done
+    once per distinct setting and its findings are repeated under every such agent's key, so
+    ``check`` stays fast for thousands of agents. The initial state shares by its length (its
+    values are checked for every agent by the schema).
+    """
+
+    def __init__(
+        self,
+        parts: ExperimentParts,
+        spec: AgentSpec,
+        report: CheckReport,
+        shared: dict[tuple[str, str], _Outcome],
+    ) -> None:
+        self.shared = shared
         self.parts = parts
         self.dt = parts.dt
         self.spec = spec
@@ -251,15 +276,54 @@ class _AgentCheck:
     def warning(self, key: str, message: str) -> None:
         self.report.warnings.append(Problem(self.parts.path, f"{self.key}.{key}", message))
 
+    def once(self, kind: str, setting: Any, check: Any) -> Any:
+        """``check()`` once per distinct ``setting`` of ``kind``; later agents with the same
+        setting get its value and its findings under their own key."""
+        key = (kind, json.dumps(setting, sort_keys=True, default=str))
+        outcome = self.shared.get(key)
+        if outcome is None:
+            problems, warnings = len(self.report.problems), len(self.report.warnings)
+            value = check()
+            start = len(self.key) + 1
+            findings = [(False, p.key[start:], p.message) for p in self.report.problems[problems:]]
+            findings += [(True, p.key[start:], p.message) for p in self.report.warnings[warnings:]]
+            self.shared[key] = _Outcome(self.spec.name, value, findings)
+            return value
+        for is_warning, sub_key, found in outcome.findings:
+            message = found.replace(repr(outcome.agent), repr(self.spec.name))
+            (self.warning if is_warning else self.problem)(sub_key, message)
+        return outcome.value
+
     # -- vehicle, link, calibration -----------------------------------------------------------
 
     def build(self) -> None:
         spec = self.spec
-        vehicle_cls = _resolve_class(self, "vehicle", spec.vehicle, resolve_vehicle)
+        vehicle_cls = self.once(
+            "vehicle class",
+            spec.vehicle,
+            lambda: _resolve_class(self, "vehicle", spec.vehicle, resolve_vehicle),
+        )
         link_kind = self._check_link(vehicle_cls)
-        calibration = self._load_calibration()
-        if vehicle_cls is None or calibration is _FAILED or self.dt is None:
+        if vehicle_cls is None or self.dt is None:
             return
+        setting = [
+            spec.vehicle,
+            spec.link,
+            spec.pinout,
+            spec.vehicle_params,
+            len(spec.initial_state),
+            spec.calibration,
+        ]
+        self.vehicle, self.n_inputs, self.n_outputs = self.once(
+            "vehicle", setting, lambda: self._build_vehicle(vehicle_cls, link_kind)
+        )
+
+    def _build_vehicle(self, vehicle_cls: Any, link_kind: str | None) -> tuple[Any, Any, Any]:
+        """Build the vehicle without a board; ``(vehicle, n_inputs, n_outputs)`` or Nones."""
+        spec = self.spec
+        calibration = self._load_calibration()
+        if calibration is _FAILED:
+            return None, None, None
         kwargs: dict[str, Any] = {"name": spec.name, "dt": self.dt}
         if spec.pinout:
             kwargs["pinout"] = spec.pinout
@@ -270,28 +334,29 @@ class _AgentCheck:
         if calibration is not None:
             kwargs["calibration"] = calibration
         try:
-            self.vehicle = vehicle_cls(**kwargs)
+            vehicle = vehicle_cls(**kwargs)
         except VehicleDefinitionError as exc:
             self.problem("vehicle", f"vehicle {spec.vehicle!r} is defined badly: {exc}")
-            return
+            return None, None, None
         except (HilswarmError, ValueError, TypeError) as exc:
             self.problem(_vehicle_error_key(exc), str(exc))
-            return
+            return None, None, None
         except NotImplementedError as exc:  # an unfinished `hilswarm new` skeleton
             self.problem("vehicle", f"vehicle {spec.vehicle!r} is not finished: {exc}")
-            return
+            return None, None, None
         except Exception as exc:  # user code: report it with the agent's key, never a traceback
             self.problem(
                 "vehicle",
                 f"constructing vehicle {spec.vehicle!r} failed: {type(exc).__name__}: {exc}",
             )
-            return
+            return None, None, None
+        self._check_initial_state(vehicle, link_kind)
         # Sizes may be per instance (a simulated vehicle takes them from its plant).
-        n_inputs = getattr(self.vehicle, "n_inputs", None)
-        n_outputs = getattr(self.vehicle, "n_outputs", None)
+        n_inputs = getattr(vehicle, "n_inputs", None)
+        n_outputs = getattr(vehicle, "n_outputs", None)
         if isinstance(n_inputs, int) and isinstance(n_outputs, int):
-            self.n_inputs, self.n_outputs = n_inputs, n_outputs
-        self._check_initial_state(link_kind)
+            return vehicle, n_inputs, n_outputs
+        return vehicle, None, None
 
     def _check_link(self, vehicle_cls: Any) -> str | None:
         spec = self.spec
@@ -343,10 +408,9 @@ class _AgentCheck:
             self.problem("calibration", f"cannot load {path.name}: {exc}")
             return _FAILED
 
-    def _check_initial_state(self, link_kind: str | None) -> None:
+    def _check_initial_state(self, vehicle: Any, link_kind: str | None) -> None:
         """Compare the initial state with the plant's state size when it can be known."""
         spec = self.spec
-        vehicle = self.vehicle
         plant = getattr(vehicle, "plant", None)
         n_states = getattr(plant, "n_states", None)
         if isinstance(n_states, int) and spec.initial_state and len(spec.initial_state) != n_states:
@@ -368,19 +432,10 @@ class _AgentCheck:
         self, output_sizes: Mapping[str, int | None], facts: GraphFacts | None
     ) -> None:
         spec = self.spec
-        controller_cls = _resolve_class(self, "controller", spec.controller, resolve_controller)
-        if controller_cls is None:
+        built = self.once("controller", [spec.controller, spec.params], self._build_controller)
+        if built is None:
             return
-        try:
-            controller = controller_cls()
-        except (HilswarmError, ValueError, TypeError) as exc:
-            self.problem("controller", f"cannot build controller {spec.controller!r}: {exc}")
-            return
-        try:
-            params = controller.validate_params(dict(spec.params))
-        except (ControllerError, ValueError, TypeError) as exc:
-            self.problem("params", str(exc))
-            return
+        controller, params = built
         neighbours = self.parts.neighbours(spec.name)
         if neighbours is None or self.dt is None:
             return  # the graph or [experiment] is broken (reported): nothing more to compare
@@ -389,7 +444,37 @@ class _AgentCheck:
             self._check_consensus_gain(controller, params, facts, neighbours)
         if self.n_inputs is None:
             return
-        self._dry_step(controller, params, neighbours, output_sizes)
+        mentioned = json.dumps(spec.params, default=str)
+        setting = [
+            spec.controller,
+            spec.params,
+            self.n_inputs,
+            self.n_outputs,
+            [(n if n in mentioned else "", output_sizes.get(n)) for n in neighbours],
+        ]
+        self.once(
+            "dry step",
+            setting,
+            lambda: self._dry_step(controller, params, neighbours, output_sizes),
+        )
+
+    def _build_controller(self) -> tuple[Any, dict[str, Any]] | None:
+        """The controller and its validated parameters, or ``None`` (problems reported)."""
+        spec = self.spec
+        controller_cls = _resolve_class(self, "controller", spec.controller, resolve_controller)
+        if controller_cls is None:
+            return None
+        try:
+            controller = controller_cls()
+        except (HilswarmError, ValueError, TypeError) as exc:
+            self.problem("controller", f"cannot build controller {spec.controller!r}: {exc}")
+            return None
+        try:
+            params = controller.validate_params(dict(spec.params))
+        except (ControllerError, ValueError, TypeError) as exc:
+            self.problem("params", str(exc))
+            return None
+        return controller, params
 
     def _check_leader(self, params: Mapping[str, Any], neighbours: tuple[str, ...]) -> None:
         leader = params.get("leader")
@@ -401,7 +486,7 @@ class _AgentCheck:
         elif leader == self.spec.name:
             self.problem("params.leader", "an agent cannot follow itself")
         elif leader not in neighbours:
-            i, j = names.index(self.spec.name), names.index(leader)
+            i, j = names.index(self.spec.name), names.index(leader)  # only on this error
             self.problem(
                 "params.leader",
                 f"{self.spec.name!r} does not hear its leader {leader!r} through the graph: "

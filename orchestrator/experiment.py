@@ -36,6 +36,7 @@ import re
 import tomllib
 from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
 
@@ -199,11 +200,15 @@ class Experiment:
         """Agent names in graph order."""
         return tuple(spec.name for spec in self.agents)
 
+    @cached_property
+    def _positions(self) -> dict[str, int]:
+        return {spec.name: i for i, spec in enumerate(self.agents)}
+
     def index(self, name: str) -> int:
         """Row/column of agent ``name`` in :attr:`adjacency` (raises ``KeyError``)."""
-        for i, spec in enumerate(self.agents):
-            if spec.name == name:
-                return i
+        position = self._positions.get(name)
+        if position is not None:
+            return position
         raise KeyError(
             f"experiment {self.name!r} has no agent {name!r}; agents: "
             + ", ".join(self.agent_names)
@@ -216,12 +221,12 @@ class Experiment:
     def neighbours(self, name: str) -> tuple[str, ...]:
         """Agents whose output ``name`` receives (``A[i][j] = 1``), in graph order."""
         row = self.adjacency[self.index(name)]
-        return tuple(spec.name for spec, a in zip(self.agents, row, strict=True) if a)
+        return tuple(self.agents[j].name for j in np.flatnonzero(row))
 
     def receivers(self, name: str) -> tuple[str, ...]:
         """Agents that receive ``name``'s output (``A[j][i] = 1``), in graph order."""
         column = self.adjacency[:, self.index(name)]
-        return tuple(spec.name for spec, a in zip(self.agents, column, strict=True) if a)
+        return tuple(self.agents[j].name for j in np.flatnonzero(column))
 
     def graph_dict(self) -> dict[str, Any]:
         """The graph as plain JSON-able data: ``{"agents": [...], "adjacency": [[...]]}``."""
@@ -256,6 +261,7 @@ class ExperimentParts:
     mocap: Any = None
     gateway: Any = None
     experiment: Experiment | None = None
+    _positions: dict[str, int] | None = field(default=None, repr=False)
 
     @property
     def dt(self) -> float | None:
@@ -270,11 +276,15 @@ class ExperimentParts:
     def neighbours(self, name: str) -> tuple[str, ...] | None:
         """Agents whose output ``name`` receives, when the graph is valid (see
         :meth:`Experiment.neighbours`)."""
-        if self.graph is None or name not in self.graph[0]:
+        if self.graph is None:
             return None
         names, adjacency, _ = self.graph
-        row = adjacency[names.index(name)]
-        return tuple(n for n, a in zip(names, row, strict=True) if a)
+        if self._positions is None:
+            self._positions = {n: i for i, n in enumerate(names)}
+        position = self._positions.get(name)
+        if position is None:
+            return None
+        return tuple(names[j] for j in np.flatnonzero(adjacency[position]))
 
 
 def parse_link_overrides(items: Sequence[str]) -> dict[str, str]:

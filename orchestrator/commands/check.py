@@ -17,6 +17,8 @@ from hilswarm.orchestrator.checks import CheckReport, check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 
 HELP = "validate an experiment file without starting anything"
+#: Agents listed one per line in the summary of a valid file (a large swarm gets a count).
+SUMMARY_AGENTS = 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,12 +78,18 @@ def summary(report: CheckReport) -> str:
             tree = "no spanning tree"
         lines.append(
             f"graph: {facts.n_edges} edges, "
-            f"{'connected' if facts.weakly_connected else 'NOT connected'}, {tree}, "
-            f"lambda_2 = {facts.algebraic_connectivity:.4g}"
+            f"{'connected' if facts.weakly_connected else 'NOT connected'}, {tree}"
+            + (
+                f", lambda_2 = {facts.algebraic_connectivity:.4g}"
+                if facts.algebraic_connectivity is not None
+                else ""
+            )
         )
-    for spec in experiment.agents:
+    for spec in experiment.agents[:SUMMARY_AGENTS]:
         link = spec.link or "(no board)"
         lines.append(f"  {spec.name}: {spec.vehicle} via {link}, controller {spec.controller}")
+    if len(experiment.agents) > SUMMARY_AGENTS:
+        lines.append(f"  ... and {len(experiment.agents) - SUMMARY_AGENTS} more agents")
     return "\n".join(lines)
 
 
