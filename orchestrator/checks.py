@@ -40,7 +40,7 @@ from hilswarm.agents.errors import (
     PinError,
     VehicleDefinitionError,
 )
-from hilswarm.agents.link.url import link_scheme, simulates_hardware
+from hilswarm.agents.link.url import is_simulated, link_scheme
 from hilswarm.agents.registry import (
     RegistryError,
     add_search_path,
@@ -379,7 +379,7 @@ class _AgentCheck:
                 f"vehicle {spec.vehicle!r} needs no board; link {spec.link!r} is not used",
             )
         needs_pose = vehicle_cls is not None and getattr(vehicle_cls, "needs_pose", False)
-        if needs_pose and not simulates_hardware(spec.link) and self.parts.mocap is None:
+        if needs_pose and not is_simulated(spec.link) and self.parts.mocap is None:
             self.problem(
                 "link",
                 f"agent {spec.name!r}: vehicle {spec.vehicle!r} needs a pose from motion "

@@ -18,7 +18,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 from hilswarm.agents.errors import LinkUrlError
 from hilswarm.agents.link.board import Board
@@ -68,16 +68,14 @@ def link_scheme(url: str) -> str:
     raise LinkUrlError(f"link URL {url!r}: unknown scheme {scheme!r}; known schemes: {known}")
 
 
-def simulates_hardware(url: str) -> bool:
-    """True when the board behind ``url`` is simulated with the vehicle's own simulated
-    hardware (``sim://``, ``simavr://``, ``xbee://...?sim=...``), which also simulates the
-    motion capture that gives the vehicle its pose.
-
-    Raises:
-        LinkUrlError: as :func:`link_scheme`.
-    """
+def is_simulated(url: str) -> bool:
+    """True when ``url``'s board is simulated with the vehicle's simulated hardware as plant:
+    ``sim://``, ``simavr://``, or ``xbee://...?sim=...`` (a simulated robot behind a simulated
+    radio). Raises :class:`LinkUrlError` like :func:`link_scheme`."""
     kind = link_scheme(url)
-    return kind in ("sim", "simavr") or (kind == "xbee" and "sim=" in url)
+    if kind == "xbee":
+        return "sim" in dict(parse_qsl(urlsplit(url).query))
+    return kind in ("sim", "simavr")
 
 
 def validate_link_url(url: str, *, local: bool = True) -> str:
