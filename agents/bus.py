@@ -376,9 +376,10 @@ def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray |
     """Encode an agent's tick report, the attachment of its y_k message.
 
     Layout: timing (compute, actuate, sense, link [s] as 4 float64; skipped ticks and link
-    retries as 2 uint16, saturating), the sizes of u and x_hat (2 uint16), then u_k (the input applied
-    over [t_{k-1}, t_k); empty at tick 0 and when not actuating) and x_hat_k (the controller state after computing u_k), as
-    float64. The recorder unpacks it in ``orchestrator/record_stream.py``.
+    retries as 2 uint16, saturating), the sizes of u and x_hat (2 uint16), then u_k (the input
+    applied over [t_{k-1}, t_k); empty at tick 0 and when not actuating) and x_hat_k (the
+    controller state after computing u_k), as float64. The recorder unpacks it in
+    ``orchestrator/record_stream.py``.
     """
     u_bytes = b"" if u is None else np.asarray(u, dtype="<f8").tobytes()
     x_bytes = b"" if x_hat is None else np.asarray(x_hat, dtype="<f8").tobytes()
