@@ -581,9 +581,15 @@ def decode_control(payload: bytes | bytearray | memoryview) -> tuple[ControlComm
     try:
         data = json.loads(bytes(payload))
         return ControlCommand(data["command"]), str(data.get("reason", ""))
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
         known = ", ".join(c.value for c in ControlCommand)
         raise BusMessageError(f"bad control message {bytes(payload)!r}: expected {known}") from exc
+
+
+#: Counter fields an agent's status message may carry (see ``hilswarm.agents.agent``):
+#: ``malformed`` {key: count}, ``dropped`` {reason: count}, ``skipped`` (ticks missed) and
+#: ``link_faults`` (board link faults). Only non-zero ones are sent; the recorder keeps them.
+STATUS_COUNTER_FIELDS = ("malformed", "dropped", "skipped", "link_faults")
 
 
 def encode_json(data: dict[str, Any]) -> bytes:
@@ -595,7 +601,7 @@ def decode_json(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     """Decode a status / acknowledgement message."""
     try:
         data = json.loads(bytes(payload))
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:
         raise BusMessageError(f"bad JSON message {bytes(payload)[:80]!r}: {exc}") from exc
     if not isinstance(data, dict):
         raise BusMessageError(f"JSON message must be an object, got {type(data).__name__}")

@@ -39,7 +39,7 @@ from hilswarm.agents.errors import (
     PinError,
     VehicleDefinitionError,
 )
-from hilswarm.agents.link.url import link_scheme
+from hilswarm.agents.link.url import is_simulated, link_scheme
 from hilswarm.agents.registry import (
     RegistryError,
     add_search_path,
@@ -304,7 +304,10 @@ class _AgentCheck:
         """A vehicle whose outputs come from motion capture needs a pose from somewhere."""
         if vehicle_cls is None or not getattr(vehicle_cls, "needs_pose", False):
             return
-        if self.experiment.mocap is None and link_kind not in ("sim", "simavr"):
+        simulated = link_kind in ("sim", "simavr") or (
+            link_kind == "xbee" and self.spec.link is not None and is_simulated(self.spec.link)
+        )
+        if self.experiment.mocap is None and not simulated:
             self.problem(
                 "link",
                 f"agent {self.spec.name!r}: vehicle {self.spec.vehicle!r} needs its pose from "

@@ -54,6 +54,7 @@ def agent_config_for(
         initial_state=tuple(float(v) for v in spec.initial_state),
         calibration=str(spec.calibration) if spec.calibration else None,
         watchdog_s=experiment.watchdog_s,
+        lockstep_window=experiment.lockstep_window,
         seed=experiment.seed,
         mocap_noise_std_m=mocap_noise_std_m,
         mocap_noise_std_rad=mocap_noise_std_rad,

@@ -476,6 +476,7 @@ class FrameRecorder:
             t=float(message.get("t", 0.0)),
             log_time_ns=log_ns,
             detail=detail,
+            counters={f: message[f] for f in bus.STATUS_COUNTER_FIELDS if f in message},
         )
 
     def _event(self, frame: bytes) -> None:

@@ -318,7 +318,8 @@ class SimavrBoard(Board):
         paced: simulated time follows the wall clock.
         url: URL reported in messages.
         serial_options: passed to :class:`SerialBoard` (``board_id``, ``timeout_s``,
-            ``retries``, ``on_event``...).
+            ``retries``, ``on_event``...); ``reconnect_timeout_s`` bounds :meth:`reconnect`
+            instead (the serial link never re-opens the pty by itself).
     """
 
     def __init__(
@@ -341,11 +342,16 @@ class SimavrBoard(Board):
         self.dt = dt
         self.paced = paced
         self.harness = SimavrHarness(profile, paced=paced)  # raises if not built
-        self._serial_options = serial_options
+        # The serial link never re-opens the pty by itself: a lost pty means a dead harness,
+        # and its path may be handed to another process's pseudo-terminal at once. Its
+        # reconnect_timeout_s is how long reconnect() (the agent) may keep trying instead.
+        self._link_timeout_s = float(serial_options.pop("reconnect_timeout_s", 5.0))
+        self._serial_options = {**serial_options, "reconnect_timeout_s": 0.0}
         self.serial: SerialBoard | None = None
         self._modes: dict[int, PinMode] = {}
         self._last_t_us: int | None = None
         self._volts: dict[int, float] = {}
+        self._link_listeners: list[Callable[[str, str], None]] = []
 
     @property
     def events(self) -> list[LinkEvent]:
@@ -362,6 +368,8 @@ class SimavrBoard(Board):
         if self.serial is None:
             pty = self.harness.start()
             self.serial = SerialBoard(pty, **self._serial_options)
+            for listener in self._link_listeners:
+                self.serial.add_link_listener(listener)
         try:
             return self.serial.open()
         except BaseException:
@@ -434,7 +442,11 @@ class SimavrBoard(Board):
 
     def read_outputs(self) -> dict[int, int]:
         """Wire value of every configured output as the firmware drives it (from the pins)."""
-        return outputs_from_state(self.harness.state(), self._modes)
+        return self.read_outputs_from(self.harness.state())
+
+    def read_outputs_from(self, state: Mapping[str, Any]) -> dict[int, int]:
+        """Like :meth:`read_outputs`, from a ``state`` snapshot taken already."""
+        return outputs_from_state(state, self._modes)
 
     def estop(self) -> TickReply:
         """ESTOP over the wire."""
@@ -443,6 +455,47 @@ class SimavrBoard(Board):
     def set_board_id(self, board_id: int) -> int:
         """SET_ID over the wire; returns the id read back from EEPROM."""
         return self._require_serial().set_board_id(board_id)
+
+    @property
+    def link_timeout_s(self) -> float:  # type: ignore[override]
+        """How long a lost link may be re-tried by :meth:`reconnect` [s] (the
+        ``reconnect_timeout_s`` option, default 5 s)."""
+        return self._link_timeout_s
+
+    def request_estop(self) -> bool:
+        """ESTOP on the serial link's own path (see :meth:`SerialBoard.request_estop`)."""
+        serial = self.serial
+        return serial.request_estop() if serial is not None else False
+
+    def add_link_listener(self, listener: Callable[[str, str], None]) -> None:
+        """Link events of the serial link (see :meth:`SerialBoard.add_link_listener`)."""
+        self._link_listeners.append(listener)
+        if self.serial is not None:
+            self.serial.add_link_listener(listener)
+
+    def abort(self) -> None:
+        """Make a blocked request give up (see :meth:`SerialBoard.abort`)."""
+        serial = self.serial
+        if serial is not None:
+            serial.abort()
+
+    def reconnect(self) -> BoardInfo:
+        """One attempt to re-establish the link; a harness that died is started again first.
+
+        A new harness is a new board (it boots, a new pty): the serial link re-opens on it,
+        handshakes and re-applies the configuration, and the input voltages injected before
+        are put on its pins again (what is wired to the board stays wired).
+        """
+        serial = self._require_serial()
+        process = self.harness.process
+        if process is None or process.poll() is not None:
+            self.harness.stop()
+            serial.port_url = self.harness.start()
+            self._last_t_us = None
+            volts, self._volts = self._volts, {}
+            for pin, value in volts.items():
+                self.set_input_voltage(pin, value)
+        return serial.reconnect()
 
     def close(self) -> None:
         """Close the link and stop the harness (quit, SIGTERM, SIGKILL). Idempotent."""

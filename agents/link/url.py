@@ -18,7 +18,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 from hilswarm.agents.errors import LinkUrlError
 from hilswarm.agents.link.board import Board
@@ -59,6 +59,16 @@ def link_scheme(url: str) -> str:
         return "serial"
     known = ", ".join(sorted([*_SCHEMES, *_PYSERIAL_SCHEMES]))
     raise LinkUrlError(f"link URL {url!r}: unknown scheme {scheme!r}; known schemes: {known}")
+
+
+def is_simulated(url: str) -> bool:
+    """True when ``url``'s board is simulated with the vehicle's simulated hardware as plant:
+    ``sim://``, ``simavr://``, or ``xbee://...?sim=...`` (a simulated robot behind a simulated
+    radio). Raises :class:`LinkUrlError` like :func:`link_scheme`."""
+    kind = link_scheme(url)
+    if kind == "xbee":
+        return "sim" in dict(parse_qsl(urlsplit(url).query))
+    return kind in ("sim", "simavr")
 
 
 def _load(target: str) -> BoardFactory:

@@ -196,6 +196,12 @@ class Spy:
             payload = self.last.get(self.keys.tick)
         return -1 if payload is None else bus.decode_tick(payload).k
 
+    def manager_state(self) -> str:
+        """The state the instance manager last announced on its status key ("" before any)."""
+        with self._lock:
+            payload = self.last.get(self.keys.manager_status)
+        return "" if payload is None else str(bus.decode_json(payload).get("state", ""))
+
     def control(self, command: bus.ControlCommand, reason: str = "test") -> None:
         """Publish a control command."""
         self.session.put(
