@@ -61,6 +61,8 @@ HARNESS_RELPATH = Path("build") / "hilswarm-simavr"
 _START_TIMEOUT_S = 10.0
 #: Seconds allowed for one control-channel reply.
 _COMMAND_TIMEOUT_S = 5.0
+#: Shortest control-command timeout a board gives its harness [s].
+_MIN_COMMAND_TIMEOUT_S = 1.0
 #: Seconds given to each stop stage (quit, SIGTERM) before the next.
 _STOP_STAGE_S = 2.0
 
@@ -145,10 +147,15 @@ class SimavrHarness:
         self.process: subprocess.Popen[bytes] | None = None
         self.pty_path = ""
         self._stdout_buffer = bytearray()
+        #: How long one control command may take [s]; past it the harness counts as stalled.
+        self.command_timeout_s = _COMMAND_TIMEOUT_S
+        self._unanswered = 0  # commands whose reply did not come in time (it comes later)
         self._stderr_file: IO[bytes] | None = None
 
     def start(self) -> str:
         """Start the process (own process group); return the pty path it bridges the UART to."""
+        self._stdout_buffer = bytearray()
+        self._unanswered = 0
         sim = SIMAVR_PROFILES[self.profile]
         command = [
             str(self.harness_path),
@@ -226,18 +233,30 @@ class SimavrHarness:
         return line.decode(errors="replace").rstrip("\r")
 
     def command(self, line: str) -> str:
-        """Send one control command; return its reply line (raises on ``err ...``)."""
+        """Send one control command; return its reply line (raises on ``err ...``).
+
+        A harness that does not answer within :attr:`command_timeout_s` (stopped, stalled)
+        raises :class:`SimulatorError`; the reply it owes is read and dropped before the next
+        command's, so replies never go to the wrong command.
+        """
         process = self.process
         if process is None or process.stdin is None or process.poll() is not None:
             raise SimulatorError(
                 f"simavr: harness is not running (command {line!r}); stderr: {self.stderr_tail()}"
             )
+        while self._unanswered:  # late replies of commands that timed out
+            self._read_line(self.command_timeout_s)
+            self._unanswered -= 1
         try:
             process.stdin.write(line.encode() + b"\n")
             process.stdin.flush()
         except OSError as exc:
             raise SimulatorError(f"simavr: harness control channel closed: {exc}") from exc
-        reply = self._read_line(_COMMAND_TIMEOUT_S)
+        try:
+            reply = self._read_line(self.command_timeout_s)
+        except SimulatorError:
+            self._unanswered += 1
+            raise
         if reply.startswith("err"):
             raise SimulatorError(f"simavr: harness refused {line!r}: {reply}")
         return reply
@@ -347,6 +366,13 @@ class SimavrBoard(Board):
         # reconnect_timeout_s is how long reconnect() (the agent) may keep trying instead.
         self._link_timeout_s = float(serial_options.pop("reconnect_timeout_s", 5.0))
         self._serial_options = {**serial_options, "reconnect_timeout_s": 0.0}
+        # A plant step's control command is part of the exchange: a harness that does not
+        # answer it within one serial request's time is a stalled board too.
+        self.harness.command_timeout_s = max(
+            _MIN_COMMAND_TIMEOUT_S,
+            float(serial_options.get("timeout_s", 0.25))
+            * (int(serial_options.get("retries", 3)) + 1),
+        )
         self.serial: SerialBoard | None = None
         self._modes: dict[int, PinMode] = {}
         self._last_t_us: int | None = None
