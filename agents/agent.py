@@ -771,13 +771,15 @@ class Agent:
                 logger.exception("%s: controller failed at tick %d", self.config.name, k)
                 self._go_safe(f"controller failed at tick {k}: {type(exc).__name__}: {exc}")
                 u_new = None
-        t1 = clock()
+        t1 = t_link = clock()
+        retries = _link_retries(hw.board)
         try:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
                 self._u = u_new
             if self._link_down:
                 raise _LinkDownError("the board link is down")
+            t_link = clock()
             if k > 0:  # tick 0 senses what connect() primed: the initial state
                 try:
                     vehicle.exchange()
@@ -808,9 +810,9 @@ class Agent:
         if skipped:
             self.skipped += skipped
         x_hat = hw.model.x_hat if u_new is not None else None
-        report = bus.encode_report(
-            bus.AgentTiming(t1 - t0, t2 - t1, t3 - t2, skipped), u_new, x_hat
-        )
+        retries = _link_retries(hw.board) - retries
+        timing = bus.AgentTiming(t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries)
+        report = bus.encode_report(timing, u_new, x_hat)
         y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
             reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
@@ -963,6 +965,11 @@ class Agent:
 
 #: Name of the instance manager's liveliness token (``hilswarm/<exp>/alive/_manager``).
 MANAGER_NAME = "_manager"
+
+
+def _link_retries(board: Any) -> int:
+    """Re-sends of board requests so far (0 for links that do not count them)."""
+    return int(getattr(getattr(board, "stats", None), "retries", 0) or 0)
 
 
 def _jsonable(value: Any) -> Any:
