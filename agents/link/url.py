@@ -18,7 +18,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import parse_qsl, urlsplit
 
 from hilswarm.agents.errors import LinkUrlError
 from hilswarm.agents.link.board import Board
@@ -33,6 +33,13 @@ _SCHEMES: dict[str, str] = {
 }
 #: pyserial URL schemes (and bare device paths) go to the serial transport.
 _SERIAL_FACTORY = "hilswarm.agents.link.serial_board:board_from_url"
+#: kind -> "module:function" checking a URL of that kind completely without opening anything.
+_VALIDATORS: dict[str, str] = {
+    "sim": "hilswarm.agents.link.sim_board:validate_url",
+    "simavr": "hilswarm.agents.link.simavr:validate_url",
+    "serial": "hilswarm.agents.link.serial_board:validate_url",
+    "xbee": "hilswarm.agents.xbee.config:validate_url",
+}
 _PYSERIAL_SCHEMES = {"loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110"}
 
 
@@ -61,11 +68,39 @@ def link_scheme(url: str) -> str:
     raise LinkUrlError(f"link URL {url!r}: unknown scheme {scheme!r}; known schemes: {known}")
 
 
-def _load(target: str) -> BoardFactory:
+def is_simulated(url: str) -> bool:
+    """True when ``url``'s board is simulated with the vehicle's simulated hardware as plant:
+    ``sim://``, ``simavr://``, or ``xbee://...?sim=...`` (a simulated robot behind a simulated
+    radio). Raises :class:`LinkUrlError` like :func:`link_scheme`."""
+    kind = link_scheme(url)
+    if kind == "xbee":
+        return "sim" in dict(parse_qsl(urlsplit(url).query))
+    return kind in ("sim", "simavr")
+
+
+def validate_link_url(url: str, *, local: bool = True) -> str:
+    """Check ``url`` as far as possible without opening it; return its kind (:func:`link_scheme`).
+
+    Beyond the scheme: the board profile and query options (``sim://mega`` is refused), a
+    serial device path exists, ``socket://`` / ``rfc2217://`` have ``HOST:PORT``, the firmware of
+    a ``simavr://`` profile is built. The transports use the same parsers when they open.
+    ``local=False`` (the board is on another machine, e.g. ``hilswarm run --remote``) skips
+    what only that machine can know: the device and the firmware build.
+
+    Raises:
+        LinkUrlError: what is wrong with ``url``.
+    """
+    kind = link_scheme(url)
+    validator = _VALIDATORS.get(kind)
+    if validator is not None:
+        _load(validator)(url.strip(), local=local)
+    return kind
+
+
+def _load(target: str) -> Callable[..., Any]:
     module_name, _, attr = target.partition(":")
     module = importlib.import_module(module_name)
-    factory: BoardFactory = getattr(module, attr)
-    return factory
+    return getattr(module, attr)  # type: ignore[no-any-return]
 
 
 def board_for_url(url: str, **options: Any) -> Board:
@@ -76,15 +111,5 @@ def board_for_url(url: str, **options: Any) -> Board:
     """
     kind = link_scheme(url)
     target = _SERIAL_FACTORY if kind == "serial" else _SCHEMES[kind]
-    return _load(target)(url, **options)
-
-
-def simulated_link(url: str) -> bool:
-    """True when link ``url`` drives a simulated plant (``sim://``, ``simavr://``, or an XBee
-    link with ``sim=``): the plant then also gives the vehicle's pose (a SimulatedMocap).
-
-    Raises:
-        LinkUrlError: an unknown scheme (see :func:`link_scheme`).
-    """
-    scheme = link_scheme(url)
-    return scheme in ("sim", "simavr") or (scheme == "xbee" and "sim=" in url)
+    factory: BoardFactory = _load(target)
+    return factory(url, **options)
