@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.mocap.clients import MocapConnectionError, MocapServerLost, QualisysClient
-from hilswarm.agents.mocap.config import MocapSettings, parse_mocap
+from hilswarm.agents.mocap.config import MocapSettings
 from hilswarm.agents.mocap.frames import SYSTEMS, world_to_ned
 from hilswarm.agents.mocap.probe import DEFAULT_PROBE_S, ProbeResult, probe
 from hilswarm.agents.mocap.qtm_sim import QtmSimulator
@@ -58,14 +58,11 @@ def _settings(args: argparse.Namespace) -> tuple[MocapSettings, Experiment | Non
         return experiment.mocap, experiment
     if args.system is None or (args.host is None and args.system != "sim"):
         raise _BadInputError("give an experiment file, or --system and --host")
-    table = {"system": args.system, "host": args.host or "127.0.0.1"}
-    if args.port is not None:
-        table["port"] = args.port
-    if args.up_axis is not None:
-        table["up_axis"] = args.up_axis
-    settings, problems = parse_mocap(table)
-    if settings is None:
-        raise _BadInputError("; ".join(f"{key}: {message}" for key, message in problems))
+    if args.port is not None and not 0 < args.port < 65536:
+        raise _BadInputError(f"--port {args.port} is not a port (1..65535)")
+    settings = MocapSettings(  # --system and --up-axis are checked by their choices
+        system=args.system, host=args.host or "127.0.0.1", port=args.port, up_axis=args.up_axis
+    )
     return settings, None
 
 
