@@ -8,6 +8,7 @@ bounded.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -69,8 +70,21 @@ def children_running(pid: int, module: bytes) -> list[int]:
 
 
 def agent_pids(pid: int) -> list[int]:
-    """Children of ``pid`` that are agent processes (not the recorder process)."""
-    return children_running(pid, b"hilswarm.agents.agent")
+    """Agent processes below ``pid``: its children, or the children of its agent fork server."""
+    servers = children_running(pid, b"hilswarm.agents.spawner")
+    agents = [c for c in children_running(pid, b"hilswarm.agents.agent") if c not in servers]
+    for server in servers:
+        agents += children_running(server, b"hilswarm.agents.agent")
+    return agents
+
+
+def agent_name_of(pid: int) -> str:
+    """The agent name of agent process ``pid``, from its command line or process title."""
+    words = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").split()
+    if b"--name" in words:  # a forked agent's title
+        return words[words.index(b"--name") + 1].decode()
+    config = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    return json.loads(config[config.index(b"--config") + 1])["name"]
 
 
 def pid_alive(pid: int) -> bool:

@@ -20,6 +20,7 @@ from swarm_harness import (
     TOY_NEIGHBOURS,
     RunProcess,
     Spy,
+    agent_name_of,
     child_pids,
     connect_spy,
     free_port,
@@ -386,9 +387,7 @@ def test_set_changes_parameters_between_ticks_and_is_acknowledged(
 def _pid_of(pids: list[int], agent: str) -> int:
     """The pid of ``agent`` among agent processes (its name is in the --config JSON)."""
     for pid in pids:
-        command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        config = command[command.index(b"--config") + 1]
-        if b'"name": "%s"' % agent.encode() in config:
+        if agent_name_of(pid) == agent:
             return pid
     raise AssertionError(f"no process for agent {agent}")
 
