@@ -17,7 +17,7 @@
     latency_s = 0.002
     dropout_rate = 0.0      # probability per body and frame that an occlusion starts
     dropout_frames = 5
-    occlusions = { f1 = [2.0, 3.0] }   # scripted: body -> [start, end] [s from its first pose]
+    occlusions = { f1 = [2.0, 3.0] }   # scripted: body -> [start, end] [s, experiment time]
 
 Per agent, ``mocap_body = "frisbee1"`` names its rigid body (default: the agent's name).
 

@@ -132,7 +132,7 @@ def serve(plan: GatewayPlan, endpoints: Sequence[str], stop: threading.Event) ->
             stop.wait()
         return 0
     except HilswarmError as exc:
-        _log.error("the gateway failed: %s", exc)
+        _log.debug("the gateway failed: %s", exc)
         sys.stderr.write(f"hilswarm gateway: {exc}\n")
         return 1
     finally:
