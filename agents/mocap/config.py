@@ -21,8 +21,10 @@
 
 Per agent, ``mocap_body = "frisbee1"`` names its rigid body (default: the agent's name).
 
-The experiment file's schema (:class:`hilswarm.orchestrator.schema.MocapSection`) checks the
-table; this module is what the mocap processes and agents run with.
+The keys, their types and ranges are declared once, in the experiment schema
+(:class:`hilswarm.orchestrator.schema.MocapSection`); the loader
+(:func:`hilswarm.orchestrator.experiment.mocap_settings`) validates a table with it and builds
+this model, which the agents, the mocap processes and the probe use.
 """
 
 from __future__ import annotations

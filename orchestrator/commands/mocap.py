@@ -30,7 +30,7 @@ from hilswarm.agents.mocap.probe import DEFAULT_PROBE_S, ProbeResult, probe
 from hilswarm.agents.mocap.qtm_sim import QtmSimulator
 from hilswarm.agents.mocap.sim_process import sim_settings
 from hilswarm.agents.registry import resolve_vehicle
-from hilswarm.orchestrator.experiment import Experiment, load_experiment
+from hilswarm.orchestrator.experiment import Experiment, load_experiment, mocap_settings
 
 HELP = "list the bodies a mocap system sees, with rate and position"
 
@@ -58,11 +58,14 @@ def _settings(args: argparse.Namespace) -> tuple[MocapSettings, Experiment | Non
         return experiment.mocap, experiment
     if args.system is None or (args.host is None and args.system != "sim"):
         raise _BadInputError("give an experiment file, or --system and --host")
-    if args.port is not None and not 0 < args.port < 65536:
-        raise _BadInputError(f"--port {args.port} is not a port (1..65535)")
-    settings = MocapSettings(  # --system and --up-axis are checked by their choices
-        system=args.system, host=args.host or "127.0.0.1", port=args.port, up_axis=args.up_axis
-    )
+    table = {"system": args.system, "host": args.host or "127.0.0.1"}
+    if args.port is not None:
+        table["port"] = args.port
+    if args.up_axis is not None:
+        table["up_axis"] = args.up_axis
+    settings, problems = mocap_settings(table, file="command line", where="")
+    if settings is None:
+        raise _BadInputError("; ".join(f"{p.key}: {p.message}" for p in problems))
     return settings, None
 
 
