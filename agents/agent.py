@@ -16,30 +16,42 @@ board/plant advance one period (``exchange``), senses ``y_k`` and publishes it �
 trip per tick. Tick 0 only senses ``y_0``. ``u_k`` is the input held over ``[t_{k-1}, t_k)``
 and is recorded with ``t = t_{k-1}``; ``y_k`` is recorded with ``t = t_k = k * dt``.
 
+Threads (the agent is a thin adapter between the bus and its tick engine):
+
+* **Bus callbacks** (Zenoh's threads) only decode and hand off: a tick or neighbour message
+  goes into the pure :class:`~hilswarm.agents.tick_engine.TickEngine` (which tick runs when,
+  with which inputs; under a lock held only for that call) and wakes the worker. They never
+  touch the board or the controller and never block, so the bus session and the liveliness
+  token stay alive whatever the board does. Any malformed message on any key is dropped and
+  counted (``malformed`` in the status messages), never fatal.
+* **The worker thread** runs ticks (controller, apply, board exchange, sense, publish y),
+  parameter changes, pause/resume and the periodic telemetry batch, in that order between
+  ticks. A board link fault (stall, unplug) puts the agent in ``degraded`` while the worker
+  reconnects and re-applies the configuration, for up to the link's timeout
+  (``Board.link_timeout_s``); past it the agent goes safe.
+* **The main thread** handles rare work: signals, stop requests, the manager's disappearance,
+  status counters, and the orderly end (it stops the worker, bounded, before making the
+  vehicle safe).
+* **E-stop** has its own path: the control callback hands ESTOP to the board at once
+  (``Board.request_estop``: a frame written beside any exchange in progress, which keeps
+  waiting for its own reply), so outputs go safe even while an exchange is blocked on a
+  stalled board; the vehicle-level safe mode follows on the worker.
+
 The vehicle's telemetry channels (``vehicle.telemetry``) go out in batches on
 ``agent/<name>/telemetry`` (:func:`~hilswarm.agents.bus.encode_telemetry_batch`): the rows
 appended since the previous batch, every :data:`~hilswarm.agents.bus.TELEMETRY_PERIOD_S` of
-wall time (checked once per tick and while idle: one clock comparison), and a last batch when
-the agent goes safe or shuts down. A killed agent loses at most one period of telemetry.
+wall time, and a last batch when the agent goes safe or shuts down. A killed agent loses at
+most one period of telemetry.
 
-Ticks run on the bus: the callback that receives the tick message, or the neighbour output
-that was the last one missing, runs the tick right there (no thread hop per tick). One lock
-(the *engine lock*) serialises ticks, commands and parameter changes, so each is handled
-whole, between ticks. The main thread only handles rare work: parameter changes (queries),
-signals, the manager's disappearance, and the periodic telemetry batch.
-
-Which tick runs when (the tick message of :class:`~hilswarm.agents.bus.TickMessage` releases
-ticks up to ``k``):
-
-* ``lockstep`` — the agent steps through every released tick; it computes tick ``k`` as soon
-  as *its own* neighbours' ``y_{k-1}`` are in (a lost neighbour, listed in ``missing``,
-  counts as no data). The manager releases ticks at most ``lockstep_window`` ahead of the
-  slowest agent. Since ``u_k`` depends only on the agent's own and its neighbours' outputs,
-  the results are those of a swarm-wide barrier per tick, whatever the window.
-* ``realtime`` — tick messages come on the wall-clock schedule and the agent runs the newest
-  one; a tick message that arrives more than :data:`STALE_TICK_PERIODS` periods after its
-  schedule (the agent was stalled and messages queued up) is skipped, and the next tick that
-  runs reports how many were skipped and may use older neighbour outputs.
+Status messages (JSON on ``agent/<name>/status``, recorded on ``/<agent>/status``) carry
+``agent``, ``state``, ``k``, ``t``, ``detail``, ``kind`` and, once any is non-zero, the input
+counters: ``malformed`` (messages that could not be decoded, by key: ``tick``, ``y``,
+``control``, ``set``), ``dropped`` (well-formed messages rejected by the tick engine, by
+reason: ``tick_ahead``, ``tick_past``, ``tick_time``, ``tick_mode``, ``tick_missing``,
+``y_ahead``, ``y_duplicate``, ``y_size``, and ``stale`` realtime ticks skipped), ``skipped``
+(ticks this agent missed in total) and ``link_faults`` (board link faults ridden out). A
+status of kind ``inputs`` is published when these counters change (at most once per
+:data:`COUNTERS_PERIOD_S`).
 """
 
 from __future__ import annotations
@@ -67,9 +79,21 @@ from hilswarm.agents.agent_config import (  # also this module's interface
     build_hardware,
 )
 from hilswarm.agents.credentials import Credentials
-from hilswarm.agents.errors import HilswarmError
+from hilswarm.agents.errors import (
+    BoardConnectionError,
+    BoardError,
+    BoardTimeoutError,
+    HilswarmError,
+)
 from hilswarm.agents.lifecycle import AgentLifecycle
 from hilswarm.agents.telemetry import TelemetryBatcher
+from hilswarm.agents.tick_engine import (  # noqa: F401 - re-exported: the engine's constants
+    MAX_NEIGHBOUR_HISTORY,
+    NEIGHBOUR_HISTORY,
+    STALE_TICK_PERIODS,
+    Tick,
+    TickEngine,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -87,17 +111,21 @@ __all__ = [
 
 #: How long an agent waits for the router, its publishers' subscribers and the manager [s].
 DEFAULT_STARTUP_TIMEOUT_S = 20.0
-#: Realtime: a tick message later than this many periods after its schedule is skipped.
-STALE_TICK_PERIODS = 1.5
-#: Realtime: how fast the estimate of the bus delay forgets its minimum [periods per tick].
-DELAY_ESTIMATE_RELAX = 0.01
-#: Neighbour outputs kept per neighbour older than this agent's last tick [ticks].
-NEIGHBOUR_HISTORY = 4
-#: Bound on the neighbour outputs kept per neighbour (newer ones included) [ticks].
-MAX_NEIGHBOUR_HISTORY = 2048
 #: Vehicle telemetry channels not published: they would repeat ``/<agent>/{y,u,x_hat}``,
 #: which the tick path records already.
 DUPLICATE_CHANNELS = ("y", "u", "x_hat")
+#: How long a stop waits for the worker to finish its tick before aborting the board link [s].
+WORKER_STOP_WAIT_S = 0.5
+#: How long it then waits for the aborted worker [s]; past it the agent stops without it.
+WORKER_ABORT_WAIT_S = 1.0
+#: Pause between two reconnection attempts of a faulty board link [s].
+RECONNECT_PAUSE_S = 0.1
+#: Shortest time between two status messages that only report changed counters [s].
+COUNTERS_PERIOD_S = 1.0
+#: The keys whose malformed messages are counted (keys of :attr:`Agent.malformed`).
+INPUT_KEYS = ("tick", "y", "control", "set")
+#: Board errors that mean the link failed (as opposed to a request the board refused).
+LINK_FAULTS = (BoardTimeoutError, BoardConnectionError)
 
 
 class StopRequestedError(HilswarmError, RuntimeError):
@@ -113,14 +141,22 @@ class StopRequestedError(HilswarmError, RuntimeError):
         self.orderly = orderly
 
 
+class _QuitRequestedError(HilswarmError, RuntimeError):
+    """Internal: the worker was told to quit while riding out a board link fault."""
+
+
+class _LinkDownError(HilswarmError, ConnectionError):
+    """Internal: the board link failed for good; ticks answer without it."""
+
+
 # ---------------------------------------------------------------------------------------------
 # The agent
 # ---------------------------------------------------------------------------------------------
 
 # Main-thread queue items: (kind, payload...). Rare: never one per tick.
 _SET, _MANAGER_GONE, _SIGNAL, _FAILED, _WAKE = range(5)
-#: No agent missing (the common tick).
-_NOBODY: frozenset[str] = frozenset()
+# Worker queue items: ``None`` (ticks may be ready) or (kind, payload...).
+_W_SET, _W_CONTROL, _W_ESTOP, _W_QUIT = range(4)
 
 
 class Agent:
@@ -155,6 +191,9 @@ class Agent:
         self._clock = clock
         self._startup_timeout_s = startup_timeout_s
         self._queue: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
+        # Lifecycle transitions come from the worker (ticks, link faults), the control callback
+        # (e-stop) and the main thread (the end): one at a time.
+        self._state_lock = threading.RLock()
         self.lifecycle = AgentLifecycle(on_transition=self._on_transition)
         self._session: zenoh.Session | None = None
         self._status_pub: zenoh.Publisher | None = None
@@ -163,20 +202,21 @@ class Agent:
         self.k = -1  # last tick answered
         self._u = np.zeros(0)
         self._y: np.ndarray | None = None
-        self._neighbour_y: dict[str, dict[int, np.ndarray]] = {n: {} for n in config.neighbours}
-        self._received_from: set[str] = set()
-        # The engine lock serialises ticks (run by bus callbacks), commands and parameter
-        # changes; it guards everything a tick reads or writes.
-        self._engine_lock = threading.RLock()
-        self._ticking = False  # ticks run only between arm and stop
-        self._realtime = False  # set by every tick message (the manager's mode)
-        self._horizon = -1  # highest tick released by the manager
-        self._horizon_t = 0.0  # realtime: its experiment time [s]
-        self._tick_missing: frozenset[str] = _NOBODY  # realtime: missing for the newest tick
-        self._lost: frozenset[str] = _NOBODY  # lockstep: agents the manager reports lost
-        self._delay_estimate = math.inf  # realtime: tick arrival - schedule, minimum [s]
-        self._last_arrival = -math.inf  # realtime: arrival of the previous tick message [s]
-        self._late_alone = False  # realtime: the previous tick message was late on its own
+        #: Which tick runs when, with which inputs; guarded by the engine lock, which is held
+        #: only for the engine's own short calls (never around board I/O or the controller).
+        self.engine = TickEngine(
+            config.neighbours, config.agent_names, config.dt, config.lockstep_window
+        )
+        self._engine_lock = threading.Lock()
+        #: Messages that could not be decoded, by key (see the module docstring).
+        self.malformed: dict[str, int] = dict.fromkeys(INPUT_KEYS, 0)
+        self.skipped = 0  # ticks this agent missed in total
+        self.link_faults = 0  # board link faults ridden out (or not)
+        self._link_down = False  # the board link failed for good: no more exchanges
+        self._work: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._wake_pending = False
+        self._worker: threading.Thread | None = None
+        self._quitting = threading.Event()  # set when the worker must finish
         self._stop_requested = ""
         self._manager_seen = threading.Event()
         self._queue_replay: list[tuple[Any, ...]] = []
@@ -185,13 +225,19 @@ class Agent:
         self._telemetry_heads: dict[str, bytes] = {}
         self._telemetry_due = math.inf  # wall clock [s, self._clock] of the next batch
         self.telemetry_batches = 0
+        self._counters_published: tuple[int, ...] = ()
+        self._extra_listeners: tuple[threading.Event, threading.Event] = (
+            threading.Event(),
+            threading.Event(),
+        )
 
     # -- telemetry -------------------------------------------------------------------------
 
     def publish_telemetry(self) -> int:
         """Publish the telemetry rows appended since the previous batch; returns the row count.
 
-        Does nothing before the publisher is declared or when nothing is new.
+        Does nothing before the publisher is declared or when nothing is new. Called by the
+        thread that owns the hardware (the worker while it runs, else the main thread).
         """
         batcher, publisher = self._telemetry, self._telemetry_pub
         self._telemetry_due = self._clock() + bus.TELEMETRY_PERIOD_S
@@ -215,19 +261,50 @@ class Agent:
         self.telemetry_batches += 1
         return count
 
+    def _owns_hardware(self) -> bool:
+        """True on the thread that may touch the vehicle, board and telemetry right now."""
+        worker = self._worker
+        if worker is not None and worker.is_alive():
+            return threading.current_thread() is worker
+        return True
+
     # -- status ----------------------------------------------------------------------------
 
     def _on_transition(self, event: str, source: str, target: str, detail: str) -> None:
         logger.info("%s: %s -> %s (%s) %s", self.config.name, source, target, event, detail)
-        if target == "safe":  # the rows up to the fault go out before the safe status
+        if target == "safe" and self._owns_hardware():  # rows up to the fault first
             self._publish_telemetry_safely()
         self.publish_status(
             {"kind": "transition", "event": event, "source": source, "state": target},
             detail=detail,
         )
 
+    def _transition(self, event: str, detail: str) -> bool:
+        """Fire lifecycle ``event`` if the current state allows it (any thread)."""
+        with self._state_lock:
+            if all(e.id != event for e in self.lifecycle.allowed_events):
+                return False
+            self.lifecycle.send(event, detail=detail)
+            return True
+
+    def counters(self) -> dict[str, Any]:
+        """The input and fault counters of status messages (non-zero ones only)."""
+        with self._engine_lock:
+            dropped = dict(self.engine.counters())
+            malformed = {key: n for key, n in self.malformed.items() if n}
+        fields: dict[str, Any] = {}
+        if malformed:
+            fields["malformed"] = malformed
+        if dropped:
+            fields["dropped"] = dropped
+        if self.skipped:
+            fields["skipped"] = self.skipped
+        if self.link_faults:
+            fields["link_faults"] = self.link_faults
+        return fields
+
     def publish_status(self, fields: Mapping[str, Any], *, detail: str = "") -> None:
-        """Publish a status message (JSON) with the current tick and state."""
+        """Publish a status message (JSON) with the current tick, state and counters."""
         if self._status_pub is None:
             return
         k = max(self.k, 0)
@@ -237,9 +314,24 @@ class Agent:
             "k": k,
             "t": k * self.config.dt,
             "detail": detail,
+            **self.counters(),
             **fields,
         }
         self._status_pub.put(bus.encode_json(message))
+
+    def _publish_changed_counters(self) -> None:
+        """A status of kind ``inputs`` when the counters changed since the last one."""
+        with self._engine_lock:
+            snapshot = (
+                *self.engine.dropped.values(),
+                self.engine.stale,
+                *self.malformed.values(),
+                self.skipped,
+                self.link_faults,
+            )
+        if snapshot != self._counters_published and any(snapshot):
+            self._counters_published = snapshot
+            self.publish_status({"kind": "inputs"}, detail="input and fault counters")
 
     # -- start-up --------------------------------------------------------------------------
 
@@ -264,6 +356,11 @@ class Agent:
                 raise StopRequestedError(
                     f"agent {self.config.name!r}: {item[1]} during start-up",
                     orderly=item[0] == _SIGNAL,
+                )
+            if self._stop_requested:
+                raise StopRequestedError(
+                    f"agent {self.config.name!r}: {self._stop_requested} during start-up",
+                    orderly=True,
                 )
             self._queue_replay.append(item)
 
@@ -297,8 +394,7 @@ class Agent:
         return session
 
     def _declare(self, session: zenoh.Session) -> None:
-        keys, name, put = self.keys, self.config.name, self._queue.put
-        guarded = self._guarded
+        keys, name = self.keys, self.config.name
         self._y_pub = session.declare_publisher(keys.y(name), **bus.TICK_PATH_QOS)
         self._u_pub = session.declare_publisher(keys.u(name), **bus.DATA_QOS)
         self._x_pub = session.declare_publisher(keys.x_hat(name), **bus.DATA_QOS)
@@ -311,23 +407,23 @@ class Agent:
             )
             entities.append(self._telemetry_pub)
             self._telemetry_due = self._clock() + bus.TELEMETRY_PERIOD_S
+        receive_neighbour, put_work = self.receive_neighbour, self._work.put
         for neighbour in self.config.neighbours:
             entities.append(
                 session.declare_subscriber(
                     keys.y(neighbour),
                     zenoh.handlers.Callback(
-                        lambda s, n=neighbour: guarded(
-                            self.receive_neighbour, n, s.payload.to_bytes()
-                        ),
+                        lambda s, n=neighbour: receive_neighbour(n, s.payload.to_bytes()),
                         indirect=False,
                     ),
                 )
             )
+        receive_tick, receive_control = self.receive_tick, self.receive_control
         entities.append(
             session.declare_subscriber(
                 keys.tick,
                 zenoh.handlers.Callback(
-                    lambda s: guarded(self.receive_tick, s.payload.to_bytes()), indirect=False
+                    lambda s: receive_tick(s.payload.to_bytes()), indirect=False
                 ),
             )
         )
@@ -335,14 +431,14 @@ class Agent:
             session.declare_subscriber(
                 keys.control,
                 zenoh.handlers.Callback(
-                    lambda s: guarded(self.receive_control, s.payload.to_bytes()),
-                    indirect=False,
+                    lambda s: receive_control(s.payload.to_bytes()), indirect=False
                 ),
             )
         )
         entities.append(
             session.declare_queryable(
-                keys.set(name), zenoh.handlers.Callback(lambda q: put((_SET, q)), indirect=False)
+                keys.set(name),
+                zenoh.handlers.Callback(lambda q: put_work((_W_SET, q)), indirect=False),
             )
         )
         entities.append(
@@ -370,42 +466,39 @@ class Agent:
         else:
             self._queue.put((_MANAGER_GONE, "the instance manager disappeared"))
 
-    # -- main loop -------------------------------------------------------------------------
+    # -- main thread -----------------------------------------------------------------------
 
     def run(self) -> int:
         """Run until stopped; returns the process exit status (0 clean stop, 1 failure)."""
         status = 1
         try:
             session = self._open_bus()
-            self.lifecycle.connect()
+            self._transition("connect", "")
             self.use_hardware(
                 self._hardware_factory(
                     self.config, endpoints=self.endpoints, security=self._security
                 )
             )
             self._attach_pose_source(session)
-            self.lifecycle.configure()
+            self._transition("configure", "")
             self._declare(session)
-            self.lifecycle.arm(detail=f"neighbours: {', '.join(self.config.neighbours) or '-'}")
+            self._transition("arm", f"neighbours: {', '.join(self.config.neighbours) or '-'}")
             for item in self._queue_replay:
                 self._queue.put(item)
             self._queue_replay.clear()
-            with self._engine_lock:
-                self._ticking = True
-                self._advance()  # a tick released while arming runs now
+            if self._stop_requested:
+                raise StopRequestedError(self._stop_requested, orderly=True)
+            self._start_worker()
             status = self._loop()
         except StopRequestedError as exc:
-            self._halt()
-            self._go_safe(str(exc), fault=not exc.orderly)
+            self._finish(str(exc), fault=not exc.orderly)
             status = 0
         except HilswarmError as exc:
-            self._halt()
             logger.error("agent %s failed: %s", self.config.name, exc)
-            self._go_safe(f"failed: {exc}")
+            self._finish(f"failed: {exc}", fault=True)
         except Exception as exc:  # a bug in user code must still leave the vehicle safe
-            self._halt()
             logger.exception("agent %s crashed", self.config.name)
-            self._go_safe(f"crashed: {type(exc).__name__}: {exc}")
+            self._finish(f"crashed: {type(exc).__name__}: {exc}", fault=True)
         finally:
             self._shutdown()
         return status
@@ -418,13 +511,17 @@ class Agent:
             self._entities.extend(attach(session, self.keys))
             source.wait_first()
 
-    def _halt(self) -> None:
-        """No more ticks (waits for a tick in progress to finish)."""
+    def _start_worker(self) -> None:
         with self._engine_lock:
-            self._ticking = False
+            self.engine.running = True
+        self._worker = threading.Thread(
+            target=self._work_loop, name=f"agent-{self.config.name}-worker", daemon=True
+        )
+        self._worker.start()
+        self._wake()  # a tick released while arming runs now
 
     def _loop(self) -> int:
-        """The main thread while running: rare work only (ticks run on the bus callbacks)."""
+        """The main thread while running: rare work only (ticks run on the worker)."""
         get = self._queue.get
         while not self._stop_requested:
             try:
@@ -433,176 +530,204 @@ class Agent:
                 item = None
             if item is not None:
                 kind = item[0]
-                if kind == _SET:
-                    with self._engine_lock:
-                        self._on_set(item[1])
-                elif kind == _FAILED:
+                if kind == _FAILED:
                     raise item[1]
-                elif kind in (_MANAGER_GONE, _SIGNAL):
-                    with self._engine_lock:
-                        self._ticking = False
-                        self._go_safe(str(item[1]), fault=kind == _MANAGER_GONE)
-                        self._stop_requested = str(item[1])
-            if self._clock() >= self._telemetry_due:
-                with self._engine_lock:
-                    self.publish_telemetry()
-        with self._engine_lock:  # a stop command: the orderly end
-            self._ticking = False
-            self._go_safe(self._stop_requested, fault=False)
+                if kind in (_MANAGER_GONE, _SIGNAL):
+                    self._finish(str(item[1]), fault=kind == _MANAGER_GONE)
+                    return 0
+            self._publish_changed_counters()
+        self._finish(self._stop_requested, fault=False)  # a stop command: the orderly end
         return 0
 
-    def _guarded(self, handler: Callable[..., None], *args: Any) -> None:
-        """Run a bus callback's work; a failure goes to the main thread, which stops safely."""
-        try:
-            handler(*args)
-        except Exception as exc:  # the main thread re-raises it: safe mode, exit status 1
-            with self._engine_lock:
-                self._ticking = False
-            self._queue.put((_FAILED, exc))
+    def _finish(self, reason: str, *, fault: bool) -> None:
+        """Stop ticking, stop the worker (bounded) and make the vehicle safe.
+
+        The worker finishes the tick in progress; one blocked on a stalled board is aborted
+        (the board link gives up), and one that does not return even then is left behind:
+        the outputs go safe through the e-stop path and the agent stops without it.
+        """
+        with self._engine_lock:
+            self.engine.running = False
+        self._stop_requested = self._stop_requested or reason
+        if not self._stop_worker():
+            hw = self.hardware
+            sent = hw is not None and hw.board is not None and hw.board.request_estop()
+            logger.error(
+                "%s: the worker did not stop (board link blocked); outputs made safe %s",
+                self.config.name,
+                "by e-stop" if sent else "by the board's watchdog",
+            )
+            self._transition("enter_safe", f"{reason} (board link blocked)")
+            return
+        self._go_safe(reason, fault=fault)
+
+    def _stop_worker(self) -> bool:
+        """Tell the worker to quit and wait for it (bounded); ``True`` once it has stopped."""
+        worker = self._worker
+        if worker is None:
+            return True
+        self._quitting.set()
+        self._work.put((_W_QUIT,))
+        worker.join(WORKER_STOP_WAIT_S)
+        if worker.is_alive() and self.hardware is not None and self.hardware.board is not None:
+            self.hardware.board.abort()
+            worker.join(WORKER_ABORT_WAIT_S)
+        return not worker.is_alive()
 
     def use_hardware(self, hardware: AgentHardware) -> None:
         """Take the built vehicle/board/controller (``run`` does this with its factory)."""
         self.hardware = hardware
         self._u = np.zeros(int(hardware.vehicle.n_inputs))
+        add_listener = getattr(hardware.board, "add_link_listener", None)
+        if add_listener is not None:
+            add_listener(self._on_link_event)
 
-    # -- ticks -------------------------------------------------------------------------------
+    def _on_link_event(self, kind: str, detail: str) -> None:
+        """A board link event, on the thread whose request met it (the worker's exchange)."""
+        if kind == "disconnected" and self.lifecycle.state_id == "running":
+            self.link_faults += 1
+            self._transition("degrade", f"board link lost at tick {self.k + 1}: {detail}")
+        elif kind == "reconnected":
+            self._transition("recover", f"board link back: {detail}")
+
+    # -- bus callbacks: decode and hand off ------------------------------------------------
+
+    def _count_malformed(self, key: str) -> None:
+        with self._engine_lock:  # several bus threads may count at once
+            self.malformed[key] += 1
+
+    def _wake(self) -> None:
+        """Wake the worker (one token at a time: the worker takes every ready tick)."""
+        if not self._wake_pending:
+            self._wake_pending = True
+            self._work.put(None)
 
     def receive_neighbour(self, name: str, payload: bytes) -> None:
-        """A neighbour's y message (bus callback): store it; run a tick that waited for it.
+        """A neighbour's y message (bus callback): into the engine; wake a tick that waits.
 
-        Raises:
-            bus.BusMessageError: the message does not follow the vector layout.
+        A malformed message is counted (``malformed["y"]``) and dropped.
         """
-        k, _t, values = bus.decode_vector(payload)
+        try:
+            k, _t, values = bus.decode_vector(payload)
+        except bus.BusMessageError:
+            self._count_malformed("y")
+            return
         values.flags.writeable = False  # shared with the controller: read-only, no copy
         with self._engine_lock:
-            history = self._neighbour_y[name]
-            history[k] = values
-            self._received_from.add(name)
-            # Keep what a tick may still need: y_{self.k} and newer (a neighbour may run up
-            # to a lockstep window ahead), and a few older ones for a realtime catch-up.
-            while len(history) > 1:
-                oldest = min(history)
-                if oldest >= self.k - NEIGHBOUR_HISTORY and len(history) <= MAX_NEIGHBOUR_HISTORY:
-                    break
-                del history[oldest]
-            if self._ticking and self._horizon > self.k and k >= self.k:
-                self._advance()
+            ready = self.engine.on_neighbour(name, k, values)
+        if ready:
+            self._wake()
 
     def receive_tick(self, payload: bytes, *, arrived: float | None = None) -> None:
-        """A tick message (bus callback): release ticks up to its ``k`` and run what can run.
+        """A tick message (bus callback): into the engine; wake the worker if a tick is ready.
 
         Args:
-            payload: the encoded :class:`~hilswarm.agents.bus.TickMessage`.
+            payload: the encoded :class:`~hilswarm.agents.bus.TickMessage`; a malformed one is
+                counted (``malformed["tick"]``) and dropped.
             arrived: when it arrived [s, this agent's clock]; default: now.
-
-        Raises:
-            bus.BusMessageError: the message does not follow the tick layout.
         """
-        tick = bus.decode_tick(payload)
+        try:
+            tick = bus.decode_tick(payload)
+        except bus.BusMessageError:
+            self._count_malformed("tick")
+            return
         arrived = self._clock() if arrived is None else arrived
         with self._engine_lock:
-            if tick.missing:
-                names = self.config.agent_names
-                missing = frozenset(names[i] for i in tick.missing if i < len(names))
-            else:
-                missing = _NOBODY
-            self._realtime = tick.realtime  # the manager's mode decides how ticks run
-            if self._realtime:
-                if tick.k <= self._horizon:
-                    return  # duplicate or out of order
-                if self._is_stale(tick.t, arrived):
-                    return  # it queued up while this agent was stalled: a fresher one follows
-                self._horizon, self._horizon_t, self._tick_missing = tick.k, tick.t, missing
-            else:
-                self._lost = self._lost | missing if missing else self._lost
-                self._horizon = max(self._horizon, tick.k)
-            if self._ticking:
-                self._advance()
-
-    def _is_stale(self, t: float, arrived: float) -> bool:
-        """Realtime: did the tick of time ``t`` [s] queue up while this agent was stalled?
-
-        Its delay (arrival on this agent's clock minus ``t``) is compared with the smallest
-        delay seen (which slowly forgets, so a slower bus is accepted). A message more than
-        :data:`STALE_TICK_PERIODS` late that arrives right behind the previous one (a burst of
-        queued messages) is stale. A late one on its own runs; two in a row mean the schedule
-        moved (a resume) or the bus got slower, and the second becomes the new reference.
-        """
-        dt = self.config.dt
-        delay = arrived - t
-        burst = arrived - self._last_arrival < 0.5 * dt
-        self._last_arrival = arrived
-        if delay - self._delay_estimate > STALE_TICK_PERIODS * dt:
-            if burst and self.k >= 0:
-                return True
-            if self._late_alone:
-                self._delay_estimate = delay
-            self._late_alone = True
-            return False
-        self._late_alone = False
-        self._delay_estimate = min(delay, self._delay_estimate + DELAY_ESTIMATE_RELAX * dt)
-        return False
+            accepted = self.engine.on_tick(tick.k, tick.t, tick.missing, tick.realtime, arrived)
+        if accepted:
+            self._wake()
 
     def receive_control(self, payload: bytes) -> None:
-        """A swarm-wide command (bus callback): handled at once, between ticks."""
-        with self._engine_lock:
-            self._on_control(payload)
-        if self._stop_requested:
+        """A swarm-wide command (bus callback). ESTOP goes to the board at once (its own path);
+        STOP ends ticking at once; pause and resume are handled by the worker between ticks.
+        """
+        try:
+            command, reason = bus.decode_control(payload)
+        except bus.BusMessageError:
+            self._count_malformed("control")
+            return
+        if command is bus.ControlCommand.ESTOP:
+            self._estop_now(reason or "e-stop")
+        elif command is bus.ControlCommand.STOP:
+            with self._engine_lock:
+                self.engine.running = False  # no tick after a stop command
+            self._stop_requested = reason or "stop requested"
             self._queue.put((_WAKE,))
+        else:
+            self._work.put((_W_CONTROL, command, reason))
 
-    def _advance(self) -> None:
-        """Run every released tick whose inputs are in (call under the engine lock)."""
-        dt = self.config.dt
-        while self._ticking and self.k < self._horizon:
-            if self._realtime:  # the newest released tick; those in between are skipped
-                k = self._horizon
-                skipped = k - self.k - 1 if self.k >= 0 else 0
-                missing, stale_ok = self._tick_missing, skipped > 0
-            else:
-                k, skipped, missing, stale_ok = self.k + 1, 0, self._lost, False
-            neighbours: dict[str, np.ndarray | None] | None = None
-            if k > 0 and self._y is not None and self.lifecycle.state_id in ("armed", "running"):
-                neighbours = self._gather(k - 1, missing, stale_ok)
-                if neighbours is None:
-                    return  # a neighbour's y_{k-1} is still on its way
-            self._run_tick(k, self._horizon_t if self._realtime else k * dt, skipped, neighbours)
+    def _estop_now(self, reason: str) -> None:
+        """E-stop: the board's own path now, the state at once, the vehicle on the worker."""
+        hw = self.hardware
+        if hw is not None and hw.board is not None:
+            hw.board.request_estop()
+        self._transition("enter_safe", f"e-stop: {reason}")
+        self._work.put((_W_ESTOP, reason))
 
-    def _gather(
-        self, k_prev: int, missing: frozenset[str], stale_ok: bool
-    ) -> dict[str, np.ndarray | None] | None:
-        """Neighbours' y_{k_prev}, or ``None`` while one that is not missing is not in yet."""
-        result: dict[str, np.ndarray | None] = {}
-        for name in self.config.neighbours:
-            history = self._neighbour_y[name]
-            values = history.get(k_prev)
-            if values is not None:
-                result[name] = values
-            elif name in missing:
-                result[name] = None
-            elif stale_ok:
-                older = [k for k in history if k < k_prev]
-                result[name] = history[max(older)] if older else None
-            else:
-                return None
-        return result
+    # -- the worker thread -----------------------------------------------------------------
 
-    def _run_tick(
-        self, k: int, t: float, skipped: int, neighbours: dict[str, np.ndarray | None] | None
-    ) -> None:
-        """Tick ``k`` with its inputs in: compute, apply, sense, publish (under the lock)."""
+    def _work_loop(self) -> None:
+        """The worker: ticks, then commands between ticks, then the telemetry batch."""
+        get = self._work.get
+        try:
+            while True:
+                timeout = self._telemetry_due - self._clock()
+                try:
+                    item = get(timeout=min(max(timeout, 0.0), 1.0))
+                except queue.Empty:
+                    item = None
+                self._wake_pending = False
+                if item is not None:
+                    if item[0] == _W_QUIT:
+                        return
+                    self._handle_work(item)
+                self._run_ready_ticks()
+                if self._clock() >= self._telemetry_due:
+                    self.publish_telemetry()
+        except _QuitRequestedError:
+            return
+        except Exception as exc:  # the main thread re-raises it: safe mode, exit status 1
+            with self._engine_lock:
+                self.engine.running = False
+            self._queue.put((_FAILED, exc))
+
+    def _run_ready_ticks(self) -> None:
+        """Run every tick the engine hands out (released, inputs in)."""
+        engine, lock, lifecycle = self.engine, self._engine_lock, self.lifecycle
+        while not self._quitting.is_set():
+            gather = self._y is not None and lifecycle.state_id in ("armed", "running")
+            with lock:
+                tick = engine.take(gather=gather)
+            if tick is None:
+                return
+            self._run_tick(tick)
+
+    def _handle_work(self, item: tuple[Any, ...]) -> None:
+        kind = item[0]
+        if kind == _W_SET:
+            self._on_set(item[1])
+        elif kind == _W_CONTROL:
+            command, reason = item[1], item[2]
+            if command is bus.ControlCommand.PAUSE:
+                self._transition("pause", reason)
+            elif command is bus.ControlCommand.RESUME:
+                self._transition("resume", reason)
+        elif kind == _W_ESTOP:
+            self._estop(item[1])
+
+    def _run_tick(self, tick: Tick) -> None:
+        """Tick ``k`` with its inputs in: compute, apply, sense, publish (on the worker)."""
         if self.lifecycle.state_id == "armed":
-            self.lifecycle.start()
+            self._transition("start", "")
+        k, t = tick.k, tick.t
         y_payload, report, u_new, x_hat = self.tick_work(
-            k, t, skipped=skipped, neighbours=neighbours
+            k, t, skipped=tick.skipped, neighbours=tick.neighbours
         )
         self._y_pub.put(y_payload, attachment=report)
         if u_new is not None and self._extra_listeners[0].is_set():
             self._u_pub.put(bus.encode_vector(k, t - self.config.dt, u_new))
         if x_hat is not None and x_hat.size and self._extra_listeners[1].is_set():
             self._x_pub.put(bus.encode_vector(k, t - self.config.dt, x_hat))
-        if self._clock() >= self._telemetry_due:
-            self.publish_telemetry()
 
     def tick_work(
         self,
@@ -617,8 +742,10 @@ class Agent:
 
         Computes ``u_k`` from ``u_{k-1}``, ``y_{k-1}`` and the neighbours' ``y_{k-1}`` (those in
         ``missing`` count as no data), applies it, exchanges with the board, senses ``y_k`` and
-        encodes it. Any failure of the controller or the vehicle/board puts the agent in safe
-        mode; it still senses and answers.
+        encodes it. A board link fault is ridden out (``degraded``, reconnect, same tick again)
+        up to the link's timeout; any other failure of the controller or the vehicle/board, or
+        a link that does not come back, puts the agent in safe mode; it still senses and
+        answers.
 
         Args:
             k: tick index (> the last one handled).
@@ -643,8 +770,10 @@ class Agent:
         if k > 0 and self._y is not None and lifecycle.state_id == "running":
             if neighbours is None:
                 with self._engine_lock:
+                    engine = self.engine
+                    engine.k = max(engine.k, k)  # called directly (tests, benchmarks)
                     everyone = missing | frozenset(self.config.neighbours)  # absent: no data
-                    neighbours = self._gather(k - 1, everyone, False)
+                    neighbours = engine.gather(k - 1, everyone, False)
             try:
                 u_new = hw.model.step(self._u, self._y, t=t - dt, neighbours=neighbours)
                 u_new.flags.writeable = False  # ours alone: the next step needs no copy of it
@@ -652,55 +781,96 @@ class Agent:
                 logger.exception("%s: controller failed at tick %d", self.config.name, k)
                 self._go_safe(f"controller failed at tick {k}: {type(exc).__name__}: {exc}")
                 u_new = None
-        t1 = clock()
+        t1 = t_link = clock()
+        retries = _link_retries(hw.board)
         try:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
                 self._u = u_new
+            if self._link_down:
+                raise _LinkDownError("the board link is down")
+            t_link = clock()
             if k > 0:  # tick 0 senses what connect() primed: the initial state
-                vehicle.exchange()
+                try:
+                    vehicle.exchange()
+                except LINK_FAULTS as exc:
+                    self._ride_out_link_fault(exc, k)
+                    vehicle.exchange()
             t2 = clock()
             y = vehicle.sense(k, t)
             if type(y) is not np.ndarray or y.dtype != np.float64:
                 y = np.asarray(y, dtype=np.float64)
+        except _QuitRequestedError:
+            raise
+        except _LinkDownError:  # safe already; no data, and no wait on the dead link
+            t2 = clock()
+            y = np.full(int(vehicle.n_outputs), np.nan)
         except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
             t2 = clock()
-            logger.exception("%s: vehicle/board failed at tick %d", self.config.name, k)
+            if isinstance(exc, LINK_FAULTS):
+                logger.error("%s: board link failed at tick %d: %s", self.config.name, k, exc)
+                self._link_down = True
+            else:
+                logger.exception("%s: vehicle/board failed at tick %d", self.config.name, k)
             self._go_safe(f"vehicle/board failed at tick {k}: {type(exc).__name__}: {exc}")
             y = np.full(int(vehicle.n_outputs), np.nan)
         t3 = clock()
         self.k = k
         self._y = y
+        if skipped:
+            self.skipped += skipped
         x_hat = hw.model.x_hat if u_new is not None else None
-        report = bus.encode_report(
-            bus.AgentTiming(t1 - t0, t2 - t1, t3 - t2, skipped), u_new, x_hat
-        )
+        retries = _link_retries(hw.board) - retries
+        timing = bus.AgentTiming(t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries)
+        report = bus.encode_report(timing, u_new, x_hat)
         y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
             reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
-            lifecycle.enter_safe(detail=str(reason))
+            self._transition("enter_safe", str(reason))
         return y_payload, report, u_new, x_hat
+
+    def _ride_out_link_fault(self, fault: BoardError, k: int) -> None:
+        """The board link failed at tick ``k``: ``degraded``, reconnect until the link's timeout.
+
+        Returns once the link is back and configured (``running`` again; the caller repeats
+        the exchange). Past the timeout it raises the last error (the caller goes safe).
+        """
+        board = self.hardware.board if self.hardware is not None else None
+        timeout = float(getattr(board, "link_timeout_s", 0.0) or 0.0)
+        state = self.lifecycle.state_id
+        if board is None or timeout <= 0 or self._quitting.is_set() or state == "safe":
+            raise fault
+        start = self._clock()
+        if state != "degraded":  # (a lost port made it degraded already)
+            self.link_faults += 1
+            self._transition("degrade", f"board link fault at tick {k}: {fault}")
+        last: BoardError = fault
+        attempts = 0
+        while True:
+            if self._quitting.is_set():
+                raise _QuitRequestedError(f"stopped while the board link was down: {last}")
+            attempts += 1
+            try:
+                board.reconnect()
+                break
+            except LINK_FAULTS as exc:
+                last = exc
+            if self._clock() - start >= timeout:
+                raise BoardConnectionError(
+                    f"board link not back within {timeout:g} s ({attempts} attempts): {last}"
+                ) from last
+            if self._quitting.wait(RECONNECT_PAUSE_S):
+                raise _QuitRequestedError(f"stopped while the board link was down: {last}")
+        self._transition(
+            "recover",
+            f"board link back after {self._clock() - start:.2f} s ({attempts} attempts); "
+            "configuration re-applied",
+        )
 
     # -- commands --------------------------------------------------------------------------
 
-    def _on_control(self, payload: bytes) -> None:
-        try:
-            command, reason = bus.decode_control(payload)
-        except bus.BusMessageError as exc:
-            logger.warning("%s: %s", self.config.name, exc)
-            return
-        state = self.lifecycle.state_id
-        if command is bus.ControlCommand.ESTOP:
-            self._estop(reason or "e-stop")
-        elif command is bus.ControlCommand.STOP:
-            self._ticking = False  # no tick after a stop command; the main thread goes safe
-            self._stop_requested = reason or "stop requested"
-        elif command is bus.ControlCommand.PAUSE and state == "running":
-            self.lifecycle.pause(detail=reason)
-        elif command is bus.ControlCommand.RESUME and state == "paused":
-            self.lifecycle.resume(detail=reason)
-
     def _estop(self, reason: str) -> None:
+        """The vehicle side of an e-stop (on the worker; the board got it on its own path)."""
         hw = self.hardware
         if hw is not None:
             try:
@@ -712,29 +882,31 @@ class Agent:
                     hw.board.estop()
                 except HilswarmError as exc:
                     logger.error("%s: board e-stop failed: %s", self.config.name, exc)
-        if self.lifecycle.state_id not in ("safe", "stopped"):
-            self.lifecycle.enter_safe(detail=f"e-stop: {reason}")
+        self._transition("enter_safe", f"e-stop: {reason}")
 
     def _go_safe(self, reason: str, *, fault: bool = True) -> None:
         """Vehicle to safe mode (outputs to safe values, pushed to the board) and state safe.
 
         ``fault=False`` marks an orderly stop (run completed, stop or signal): the vehicle logs
-        it at INFO instead of WARNING.
+        it at INFO instead of WARNING. Called by the thread that owns the hardware.
         """
         if self.lifecycle.state_id in ("safe", "stopped"):
             return
         hw = self.hardware
         if hw is not None:
+            if self._link_down and hw.board is not None:
+                hw.board.abort()  # no request may wait on the dead link; its watchdog acts
             try:
                 if not getattr(hw.vehicle, "safe_mode", False):
                     if fault:
                         hw.vehicle.enter_safe_mode(reason)
                     else:
                         hw.vehicle.enter_safe_mode(reason, fault=False)
-                hw.vehicle.exchange()  # push the safe values to the board now
+                if not self._link_down:
+                    hw.vehicle.exchange()  # push the safe values to the board now
             except HilswarmError as exc:
                 logger.error("%s: could not make outputs safe: %s", self.config.name, exc)
-        self.lifecycle.enter_safe(detail=reason)
+        self._transition("enter_safe", reason)
 
     def _publish_telemetry_safely(self) -> None:
         """The last batch on the way out: a failure is logged, never stops the shutdown."""
@@ -746,7 +918,11 @@ class Agent:
     def _on_set(self, query: zenoh.Query) -> None:
         """Apply a parameter change between ticks and acknowledge it (query reply + status)."""
         try:
-            request = bus.decode_json(query.payload.to_bytes() if query.payload else b"{}")
+            try:
+                request = bus.decode_json(query.payload.to_bytes() if query.payload else b"{}")
+            except bus.BusMessageError:
+                self._count_malformed("set")
+                raise
             changes = request.get("params")
             if not isinstance(changes, dict) or not changes:
                 raise AgentConfigError("expected {'params': {name: value, ...}}")
@@ -767,13 +943,15 @@ class Agent:
     # -- shutdown --------------------------------------------------------------------------
 
     def _shutdown(self) -> None:
-        self._publish_telemetry_safely()
+        worker_done = self._stop_worker()
+        if worker_done:
+            self._publish_telemetry_safely()
         self._telemetry_pub = None
         if self.lifecycle.state_id == "safe":
             received = sorted(self.received_from)
-            self.lifecycle.stop(detail=f"received from: {', '.join(received) or '-'}")
+            self._transition("stop", f"received from: {', '.join(received) or '-'}")
         hw = self.hardware
-        if hw is not None and hw.board is not None:
+        if worker_done and hw is not None and hw.board is not None:
             try:
                 hw.board.close()
             except HilswarmError as exc:
@@ -792,11 +970,16 @@ class Agent:
     def received_from(self) -> frozenset[str]:
         """Agents whose output this agent actually received (neighbour-only delivery check)."""
         with self._engine_lock:
-            return frozenset(self._received_from)
+            return frozenset(self.engine.received_from)
 
 
 #: Name of the instance manager's liveliness token (``hilswarm/<exp>/alive/_manager``).
 MANAGER_NAME = "_manager"
+
+
+def _link_retries(board: Any) -> int:
+    """Re-sends of board requests so far (0 for links that do not count them)."""
+    return int(getattr(getattr(board, "stats", None), "retries", 0) or 0)
 
 
 def _jsonable(value: Any) -> Any:

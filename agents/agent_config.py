@@ -21,6 +21,8 @@ from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.link.url import board_for_url, is_simulated, link_scheme
 from hilswarm.agents.registry import resolve_controller, resolve_vehicle
 
+#: Lockstep window when the orchestrator gives none [ticks] (the experiment file's default).
+DEFAULT_LOCKSTEP_WINDOW = 8
 #: Board watchdog when the experiment gives none [s].
 DEFAULT_WATCHDOG_S = 0.5
 
@@ -52,6 +54,8 @@ class AgentConfig:
         seed: seed for simulated sensors (mocap noise), or ``None``.
         mocap_noise_std_m: standard deviation of simulated mocap position noise [m].
         mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
+        lockstep_window: the experiment's lockstep window [ticks]: a lockstep agent never
+            runs more than this many ticks past its own last tick, whatever arrives.
         run_id: the run's id (bus key prefix ``hilswarm/<exp>/<run_id>``; empty: none).
         mocap: the experiment's ``[mocap]`` section as plain data
             (:meth:`~hilswarm.agents.mocap.config.MocapSettings.to_dict`), or ``None``: the
@@ -78,6 +82,7 @@ class AgentConfig:
     seed: int | None = None
     mocap_noise_std_m: float = 0.0
     mocap_noise_std_rad: float = 0.0
+    lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
     run_id: str = ""
     mocap: dict[str, Any] | None = None
     mocap_body: str | None = None
@@ -99,6 +104,11 @@ class AgentConfig:
             raise AgentConfigError(f"agent {self.name!r} lists itself as its own neighbour")
         if not (isinstance(self.dt, int | float) and math.isfinite(self.dt) and self.dt > 0):
             raise AgentConfigError(f"agent {self.name!r}: dt must be > 0 [s], got {self.dt!r}")
+        window = self.lockstep_window
+        if isinstance(window, bool) or not isinstance(window, int) or window < 1:
+            raise AgentConfigError(
+                f"agent {self.name!r}: lockstep_window must be an integer >= 1, got {window!r}"
+            )
 
     @property
     def index(self) -> int:

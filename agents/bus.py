@@ -289,7 +289,7 @@ _VECTOR_HEADER = struct.Struct("<qd")
 _TICK_HEADER = struct.Struct("<qdBH")
 #: Flag bits of a tick message.
 TICK_REALTIME = 0x01
-_REPORT_HEADER = struct.Struct("<dddIHH")
+_REPORT_HEADER = struct.Struct("<ddddHHHH")
 
 
 def encode_vector(k: int, t: float, values: np.ndarray | Sequence[float]) -> bytes:
@@ -379,24 +379,31 @@ class AgentTiming:
 
     Attributes:
         compute_s: controller step [s, wall clock].
-        actuate_s: apply + board exchange (plant advance) [s, wall clock].
+        actuate_s: applying ``u`` on the vehicle (limits, calibration, staging the outputs)
+            [s, wall clock].
         sense_s: sensing y_k [s, wall clock].
         skipped: ticks the agent dropped since its last answer because it fell behind.
+        link_s: the board round trip (request out, board turnaround, reply in; re-sends
+            included) [s, wall clock]; 0 without a board.
+        retries: re-sends of the board request in this tick (links that count them).
     """
 
     compute_s: float = 0.0
     actuate_s: float = 0.0
     sense_s: float = 0.0
     skipped: int = 0
+    link_s: float = 0.0
+    retries: int = 0
 
 
 def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray | None) -> bytes:
     """Encode an agent's tick report, the attachment of its y_k message.
 
-    Layout: timing (compute, actuate, sense [s] as 3 float64; skipped ticks as uint32), the
-    sizes of u and x_hat (2 uint16), then u_k (the input applied over [t_{k-1}, t_k); empty at
-    tick 0 and when not actuating) and x_hat_k (the controller state after computing u_k), as
-    float64. The recorder unpacks it in ``orchestrator/record_stream.py``.
+    Layout: timing (compute, actuate, sense, link [s] as 4 float64; skipped ticks and link
+    retries as 2 uint16, saturating), the sizes of u and x_hat (2 uint16), then u_k (the input
+    applied over [t_{k-1}, t_k); empty at tick 0 and when not actuating) and x_hat_k (the
+    controller state after computing u_k), as float64. The recorder unpacks it in
+    ``orchestrator/record_stream.py``.
     """
     u_bytes = b"" if u is None else np.asarray(u, dtype="<f8").tobytes()
     x_bytes = b"" if x_hat is None else np.asarray(x_hat, dtype="<f8").tobytes()
@@ -405,7 +412,9 @@ def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray |
             timing.compute_s,
             timing.actuate_s,
             timing.sense_s,
-            timing.skipped,
+            timing.link_s,
+            min(timing.skipped, 0xFFFF),
+            min(timing.retries, 0xFFFF),
             len(u_bytes) // 8,
             len(x_bytes) // 8,
         )
@@ -596,9 +605,15 @@ def decode_control(payload: bytes | bytearray | memoryview) -> tuple[ControlComm
     try:
         data = json.loads(bytes(payload))
         return ControlCommand(data["command"]), str(data.get("reason", ""))
-    except (ValueError, KeyError, TypeError) as exc:
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
         known = ", ".join(c.value for c in ControlCommand)
         raise BusMessageError(f"bad control message {bytes(payload)!r}: expected {known}") from exc
+
+
+#: Counter fields an agent's status message may carry (see ``hilswarm.agents.agent``):
+#: ``malformed`` {key: count}, ``dropped`` {reason: count}, ``skipped`` (ticks missed) and
+#: ``link_faults`` (board link faults). Only non-zero ones are sent; the recorder keeps them.
+STATUS_COUNTER_FIELDS = ("malformed", "dropped", "skipped", "link_faults")
 
 
 def encode_json(data: dict[str, Any]) -> bytes:
@@ -610,7 +625,7 @@ def decode_json(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     """Decode a status / acknowledgement message."""
     try:
         data = json.loads(bytes(payload))
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:
         raise BusMessageError(f"bad JSON message {bytes(payload)[:80]!r}: {exc}") from exc
     if not isinstance(data, dict):
         raise BusMessageError(f"JSON message must be an object, got {type(data).__name__}")

@@ -3,7 +3,9 @@
 ::
 
     starting -> connected -> configured -> armed -> running <-> paused
-                                                      |            |
+                                                    ^  |
+                                     board link back |  v board link fault
+                                                    degraded
         (any state but stopped) --- fault / estop / low battery ---> safe -> stopped
 
 * ``starting``: the process is up, nothing opened yet.
@@ -11,6 +13,10 @@
 * ``configured``: vehicle built, board connected, controller ready.
 * ``armed``: publishers/subscribers declared, liveliness token up; waiting for tick 0.
 * ``running``: answering ticks. ``paused``: no ticks, last input held.
+* ``degraded``: the board link failed (stalled or unplugged board); the agent is reconnecting,
+  its ticks are missed (reported as skipped) and its bus session stays up. Back to
+  ``running`` once the link is re-established and configured, or ``safe`` past the link's
+  timeout.
 * ``safe``: the vehicle is in safe mode (outputs at their safe values); the agent still senses
   and answers ticks so the swarm's bookkeeping goes on, but never actuates again.
 * ``stopped``: final; the process exits.
@@ -44,6 +50,7 @@ class AgentLifecycle(StateMachine):
     armed = State()
     running = State()
     paused = State()
+    degraded = State()
     safe = State()
     stopped = State(final=True)
 
@@ -53,6 +60,10 @@ class AgentLifecycle(StateMachine):
     start = armed.to(running)
     pause = running.to(paused)
     resume = paused.to(running)
+    #: the board link failed; the agent reconnects.
+    degrade = running.to(degraded)
+    #: the board link is back and configured again.
+    recover = degraded.to(running)
     #: fault, e-stop, low battery, lost board: outputs to safe values.
     enter_safe = (
         starting.to(safe)
@@ -61,6 +72,7 @@ class AgentLifecycle(StateMachine):
         | armed.to(safe)
         | running.to(safe)
         | paused.to(safe)
+        | degraded.to(safe)
     )
     #: orderly end: only from safe, so outputs are always made safe first.
     stop = safe.to(stopped)

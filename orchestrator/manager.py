@@ -317,6 +317,9 @@ class InstanceManager:
         with self._lock:
             if self._sink is not None:
                 self._frames.append(status_frame(i, self._wall_ns(), payload))
+            if "degraded" in (state, self.agent_states.get(name)):
+                # A board link fault: the agent's ticks wait for its link, it is not hung.
+                self._tick.last_progress = self._clock()
             self.agent_states[name] = state
         if state == "safe":
             agent_k = message.get("k")
@@ -578,6 +581,9 @@ class InstanceManager:
         now = self._clock()
         waiting = tick.base <= tick.released and not self._paused  # an open tick to answer
         if waiting and not accounts and now - tick.last_progress > self.answer_timeout_s:
+            with self._lock:  # a degraded agent waits for its board link: not lost
+                if "degraded" in self.agent_states.values():
+                    return
             for j in tick.unanswered():
                 self._on_agent_gone(
                     self.names[j], tick.base, f"no answer within {self.answer_timeout_s} s"

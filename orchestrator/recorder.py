@@ -67,6 +67,16 @@ STATUS_SCHEMA = _object_schema(
         "agent": {"type": "string"},
         "state": {"type": "string", "description": "lifecycle state entered"},
         "detail": {"type": "string", "description": "reason or remark"},
+        "malformed": {
+            "type": "object",
+            "description": "messages the agent could not decode, by key (tick, y, control, set)",
+        },
+        "dropped": {
+            "type": "object",
+            "description": "well-formed messages the agent's tick engine rejected, by reason",
+        },
+        "skipped": {"type": "integer", "description": "ticks the agent missed in total"},
+        "link_faults": {"type": "integer", "description": "board link faults of the agent"},
     },
 )
 TICKS_SCHEMA = _object_schema(
@@ -325,6 +335,7 @@ class Recorder:
         t: float,
         log_time_ns: int,
         detail: str = "",
+        counters: Mapping[str, Any] | None = None,
     ) -> None:
         """Record a lifecycle state of ``agent`` on ``/<agent>/status``.
 
@@ -335,6 +346,8 @@ class Recorder:
             t: experiment time [s].
             log_time_ns: log time [ns, wall clock, Unix epoch].
             detail: free text, e.g. the reason of a safe-mode entry.
+            counters: the agent's input and fault counters (``malformed``, ``dropped``,
+                ``skipped``, ``link_faults``), as it sent them.
         """
         message = {
             "k": int(k),
@@ -343,6 +356,7 @@ class Recorder:
             "agent": agent,
             "state": str(state),
             "detail": str(detail),
+            **(counters or {}),
         }
         self._write_json(status_topic(agent), message, log_time_ns, STATUS_SCHEMA)
 

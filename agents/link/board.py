@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import enum
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Self
@@ -206,6 +206,35 @@ class Board(ABC):
     @abstractmethod
     def close(self) -> None:
         """Release the link. Idempotent."""
+
+    # Fault handling. Boards behind a real link override these; in-process boards cannot fail.
+
+    #: How long a faulty link may take to come back before the caller gives up on it [s]
+    #: (0: the board has no link that can fail).
+    link_timeout_s: float = 0.0
+
+    def request_estop(self) -> bool:
+        """Make every output safe now, from any thread, without waiting (the e-stop's own path).
+
+        Returns ``False`` when the board has no such path: then the caller's next
+        :meth:`estop`, on the board's own thread, does it.
+        """
+        return False
+
+    def add_link_listener(self, listener: Callable[[str, str], None]) -> None:
+        """Call ``listener(kind, detail)`` on link events (``disconnected``, ``reconnected``...),
+        on the thread whose request met them. Default: a link that cannot fail has none."""
+        return
+
+    def abort(self) -> None:
+        """Make a blocked request give up soon (any thread). Default: nothing can block."""
+        return
+
+    def reconnect(self) -> BoardInfo:
+        """Re-establish a failed link and re-apply the configuration: one bounded attempt."""
+        from hilswarm.agents.errors import BoardConnectionError  # noqa: PLC0415 - no cycle at import
+
+        raise BoardConnectionError(f"{type(self).__name__} cannot reconnect")
 
     def __enter__(self) -> Self:
         self.open()

@@ -15,6 +15,10 @@ Reliability:
   rebooted behind an open port (a TICK refused with NOT_CONFIGURED) is re-configured the same
   way. Every such event is a :class:`LinkEvent` in :attr:`SerialBoard.events`, passed to the
   ``on_event`` callback and logged.
+* **From another thread.** :meth:`SerialBoard.request_estop` sends ESTOP without waiting for
+  the link (its own path: it never waits behind a request in progress) and keeps the e-stop
+  latched across reconnections; :meth:`SerialBoard.abort` makes a blocked request or
+  reconnection give up within one poll period. Everything else is for one thread at a time.
 * **Handshake.** HELLO is repeated for up to ``open_timeout_s`` (an Arduino resets when its port
   is opened and its bootloader runs first); the protocol version must be
   :data:`~.board.PROTOCOL_VERSION` and, if ``board_id`` is given, the board's id must match,
@@ -36,12 +40,13 @@ import logging
 import os
 import select
 import struct
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
-from urllib.parse import parse_qsl, urlencode
+from urllib.parse import parse_qsl, urlencode, urlsplit
 
 import serial
 from hilswarm.agents.errors import (
@@ -103,6 +108,9 @@ URL_OPTIONS = {
 _POLL_S = 0.02
 #: Pause between two attempts to re-open a vanished port [s].
 _REOPEN_PAUSE_S = 0.05
+#: Longest wait of the e-stop path for a frame being written to finish [s]; past it the ESTOP
+#: frame goes out anyway, after a delimiter that ends the partial frame.
+_ESTOP_LOCK_WAIT_S = 0.002
 #: Most TICK layouts kept per configuration (one per distinct set of written and read pins).
 _MAX_TICK_LAYOUTS = 64
 #: Largest single read from a port's file descriptor [bytes].
@@ -222,6 +230,7 @@ class SerialBoard(Board):
             )
         self.url = url
         self.port_url = port_url
+        self.link_timeout_s = reconnect_timeout_s
         self.baudrate = baudrate
         self.expected_board_id = board_id
         self.timeout_s = timeout_s
@@ -248,6 +257,11 @@ class SerialBoard(Board):
         self._statuses: dict[int, BoardStatus] = {}
         self._time_offset_us = 0
         self._last_time_us: int | None = None
+        # Frames are written whole under this lock: the e-stop path writes from another thread.
+        self._write_lock = threading.Lock()
+        self._aborted = threading.Event()
+        self._estop_requested = False
+        self._link_listeners: list[Callable[[str, str], None]] = []
 
     # ------------------------------------------------------------------ events
     def _event(self, kind: str, detail: str) -> None:
@@ -257,6 +271,8 @@ class SerialBoard(Board):
         _log.log(level, "%s: %s: %s", self.url, kind, detail)
         if self.on_event is not None:
             self.on_event(event)
+        for listener in self._link_listeners:
+            listener(kind, detail)
 
     # ------------------------------------------------------------------ port
     def _open_port(self) -> None:
@@ -284,6 +300,10 @@ class SerialBoard(Board):
     def _write(self, frame: bytes) -> None:
         if self._port is None:
             raise _PortLostError("port is closed")
+        with self._write_lock:
+            self._write_locked(frame)
+
+    def _write_locked(self, frame: bytes) -> None:
         try:
             written = 0
             if self._fd is not None:
@@ -338,6 +358,8 @@ class SerialBoard(Board):
 
     def _await_reply(self, seq: int, reply_type: int, deadline: float) -> Message | None:
         while self._inbox or self._clock() < deadline:
+            if self._aborted.is_set():
+                raise BoardConnectionError(f"{self.url}: request aborted")
             if not self._inbox:
                 self._inbox.extend(self._read_payloads())
             while self._inbox:
@@ -480,7 +502,8 @@ class SerialBoard(Board):
                     f"{self.url}: link lost ({cause}) and not re-established within "
                     f"{self.reconnect_timeout_s} s after {attempts} attempts: {last_error}"
                 )
-            time.sleep(_REOPEN_PAUSE_S)  # back-off while the device is away
+            if self._aborted.wait(_REOPEN_PAUSE_S):  # back-off while the device is away
+                raise BoardConnectionError(f"{self.url}: reconnection aborted ({cause})")
         self.stats.reconnections += 1
         self._event(
             "reconnected",
@@ -495,6 +518,84 @@ class SerialBoard(Board):
         reply = self._transact_once(self._config_payload(pins, watchdog_ms))
         if isinstance(reply, ErrorMsg):
             raise self._request_error(reply, ConfigMsg.msg_type)
+        if self._estop_requested:  # configuring clears the latch: an e-stop stays an e-stop
+            reply = self._transact_once(encode_payload(EstopMsg(self._next_seq())))
+            if isinstance(reply, ErrorMsg):
+                raise self._request_error(reply, EstopMsg.msg_type)
+
+    def reconnect(self) -> BoardInfo:
+        """Re-open the port, handshake and re-apply the configuration: one attempt.
+
+        For a caller that supervises a faulty link itself (the agent, between ticks): bounded by
+        ``open_timeout_s`` for the handshake plus one request's retries.
+
+        Raises:
+            BoardConnectionError: the port cannot be opened or fails again (or aborted).
+            BoardTimeoutError: the board does not answer.
+            ProtocolError: the board that answers is not the expected one.
+        """
+        self._close_port()
+        try:
+            self._open_port()
+            self._info = self._handshake(self._clock() + self.open_timeout_s)
+            self._reapply_config()
+        except _PortLostError as exc:
+            self._close_port()
+            raise BoardConnectionError(
+                f"{self.url}: link failed while reconnecting: {exc}"
+            ) from exc
+        except BaseException:
+            self._close_port()
+            raise
+        self.stats.reconnections += 1
+        self._event("reconnected", "by the caller; configuration re-applied")
+        return self._info
+
+    def request_estop(self) -> bool:
+        """Send ESTOP now, from any thread, without waiting for the link or for a reply.
+
+        The e-stop's own path: it never waits behind a request in progress (a blocked exchange
+        keeps waiting for its own reply and discards the ESTOP reply as stale). The frame goes
+        out whole (after a delimiter that ends any partial frame) and the e-stop stays latched
+        across reconnections: re-applying the configuration is followed by ESTOP again.
+
+        Returns:
+            ``True`` when the frame was handed to the port, ``False`` when it could not be
+            (port closed or failing).
+        """
+        self._estop_requested = True
+        port = self._port
+        if port is None:
+            return False
+        frame = b"\x00" + frame_payload(encode_payload(EstopMsg((self._seq + 128) & 0xFF)))
+        locked = self._write_lock.acquire(timeout=_ESTOP_LOCK_WAIT_S)
+        try:
+            fd = self._fd
+            if fd is not None:
+                written = os.write(fd, frame)
+                if written < len(frame):
+                    port.write(frame[written:])
+            else:
+                port.write(frame)
+        except (serial.SerialException, OSError, BlockingIOError) as exc:
+            _log.error("%s: e-stop frame not sent: %s", self.url, exc)
+            return False
+        finally:
+            if locked:
+                self._write_lock.release()
+        self._event("estop_sent", "ESTOP sent on the e-stop path")
+        return True
+
+    def add_link_listener(self, listener: Callable[[str, str], None]) -> None:
+        """Call ``listener(kind, detail)`` with every :class:`LinkEvent`, after ``on_event``."""
+        self._link_listeners.append(listener)
+
+    def abort(self) -> None:
+        """Make a blocked request or reconnection give up within one poll period (any thread).
+
+        Every later request fails at once (:class:`BoardConnectionError`) until :meth:`open`.
+        """
+        self._aborted.set()
 
     # ------------------------------------------------------------------ Board API
     def open(self) -> BoardInfo:
@@ -505,6 +606,7 @@ class SerialBoard(Board):
             BoardTimeoutError: no HELLO reply within ``open_timeout_s``.
             ProtocolError: protocol version or board id mismatch.
         """
+        self._aborted.clear()
         if self._port is None:
             self._open_port()
         try:
@@ -559,6 +661,7 @@ class SerialBoard(Board):
                 pin=None,
             )
         pins = tuple(pins)
+        self._estop_requested = False  # configuring clears an e-stop (the protocol's rule)
         reply = self._transact(self._config_payload(pins, watchdog_ms))
         if not isinstance(reply, ConfigReplyMsg):
             raise ProtocolError(f"{self.url}: CONFIG answered with {reply!r}")
@@ -710,6 +813,7 @@ class SerialBoard(Board):
 
         The reply carries no board clock: ``board_time_s`` is that of the last TICK reply.
         """
+        self._estop_requested = True
         seq_payload = encode_payload(EstopMsg(self._next_seq()))
         reply = self._transact(seq_payload)
         if not isinstance(reply, EstopReplyMsg):
@@ -801,3 +905,39 @@ def board_from_url(url: str, **options: Any) -> SerialBoard:
             f"link URL {url!r}: {', '.join(clash)} given both in the URL and as keyword options"
         )
     return SerialBoard(url, port_url=port_url, **from_url, **options)
+
+
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check a serial link URL without opening it: options, URL syntax, and (``local``: the
+    board is plugged into this machine) that the device exists.
+
+    ``socket://`` and ``rfc2217://`` URLs are syntax-checked only (``HOST:PORT``): whether the
+    server answers is known only when the run opens it.
+
+    Raises:
+        LinkUrlError: a bad option, a network URL without host and port, a device path that
+            does not exist.
+    """
+    port_url, _ = split_url_options(url)
+    if "://" not in port_url:
+        posix_path = os.name == "posix" and port_url.startswith("/")
+        if local and posix_path and not os.path.exists(port_url):
+            from serial.tools.list_ports import comports  # noqa: PLC0415 - only on this error
+
+            present = sorted(port.device for port in comports())
+            raise LinkUrlError(
+                f"serial device {port_url!r} does not exist (is the board plugged in?); "
+                + (f"serial ports present: {', '.join(present)}" if present else "no serial ports")
+            )
+        return
+    parts = urlsplit(port_url)
+    scheme = parts.scheme.lower()
+    if scheme in ("socket", "rfc2217"):
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if not parts.hostname or port is None or not 0 < port < 65536:
+            raise LinkUrlError(
+                f"link URL {url!r}: expected {scheme}://HOST:PORT with a port 1-65535"
+            )

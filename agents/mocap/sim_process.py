@@ -81,7 +81,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             def on_truth(sample: zenoh.Sample, body: str = body) -> None:
                 try:
-                    simulator.set_truth(body, message.decode_truth(sample.payload.to_bytes()))
+                    pose, t = message.decode_truth(sample.payload.to_bytes())
+                    simulator.set_truth(body, pose, t=t)
                 except bus.BusMessageError as exc:
                     logger.warning("body %s: %s", body, exc)
 

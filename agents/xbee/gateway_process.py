@@ -147,7 +147,7 @@ def serve(
             stop.wait()
         return 0
     except HilswarmError as exc:
-        _log.error("the gateway failed: %s", exc)
+        _log.debug("the gateway failed: %s", exc)
         sys.stderr.write(f"hilswarm gateway: {exc}\n")
         return 1
     finally:

@@ -144,6 +144,7 @@ static avr_irq_t *g_uart_in = NULL;
 static byte_queue_t g_to_avr, g_to_host;
 static int g_master = -1;
 static int g_host_connected = 0;
+static int g_muted = 0;  // fault injection: the firmware's replies are lost on the way to the host
 static FILE *g_ctl = NULL;  // the control channel (original stdout)
 static uint64_t g_cycle_offset = 0;  // keeps simulated time monotonic across AVR resets
 static uint64_t g_last_cycle = 0;
@@ -351,6 +352,7 @@ static avr_cycle_count_t tx_deliver(struct avr_t *avr, avr_cycle_count_t when, v
     g_tx.len--;
     TRACE("deliver", "%u", (unsigned)b);
     if (!g_host_connected) continue;  // nobody listening: a later host must not read stale bytes
+    if (g_muted) continue;            // a broken TX line: the host never sees this byte
     if (queue_push(&g_to_host, &b, 1) != 0) {
       fprintf(stderr, "hilswarm-simavr: host is not reading the pty; output queue full\n");
       queue_clear(&g_to_host);
@@ -600,11 +602,18 @@ static int run_command(char *line) {
     cmd_din(a1, a2);
   } else if (strcmp(cmd, "ping") == 0 && !a1) {
     reply("ok");
+  } else if (strcmp(cmd, "mute") == 0 && a1 && !a2) {
+    if (strcmp(a1, "0") != 0 && strcmp(a1, "1") != 0) {
+      reply("err mute: expected 0 or 1");
+    } else {
+      g_muted = a1[0] == '1';
+      reply("ok");
+    }
   } else if (strcmp(cmd, "quit") == 0 && !a1) {
     reply("ok");
     return 1;
   } else if (strcmp(cmd, "state") == 0 || strcmp(cmd, "adc") == 0 || strcmp(cmd, "din") == 0 ||
-             strcmp(cmd, "ping") == 0 || strcmp(cmd, "quit") == 0) {
+             strcmp(cmd, "ping") == 0 || strcmp(cmd, "quit") == 0 || strcmp(cmd, "mute") == 0) {
     reply("err %s: wrong number of arguments", cmd);
   } else {
     reply("err unknown command '%.40s'", cmd);

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Container
 from pathlib import Path
 
 from hilswarm.agents.agent import run_agent
@@ -42,7 +43,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the agent until the experiment stops it."""
-    experiment = load_experiment(args.experiment, overrides=overrides_from_args(args))
+    # Only this agent's board is on this machine: the others' devices are checked where they run.
+    others = _AllBut(args.name)
+    experiment = load_experiment(
+        args.experiment, overrides=overrides_from_args(args), remote=others
+    )
     add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
     if args.name not in experiment.agent_names:
         known = ", ".join(experiment.agent_names)
@@ -54,3 +59,13 @@ def run(args: argparse.Namespace) -> int:
     target = target_from_args(args, experiment.name, agent_user(args.name))
     config = agent_config_for(experiment, args.name, run_id=target.keys.run_id)
     return run_agent(config, target.endpoints, target.security)
+
+
+class _AllBut(Container[str]):
+    """Every agent name except one (the agents that are remote from ``hilswarm agent``)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __contains__(self, item: object) -> bool:
+        return item != self.name

@@ -162,9 +162,14 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiment; see the module docstring for the exit status."""
     overrides = overrides_from_args(args)
     if args.no_check:
-        experiment = load_experiment(args.file, overrides=overrides)
+        experiment = load_experiment(
+            args.file, overrides=overrides, max_agents=args.max_agents, remote=args.remote
+        )
     else:
-        experiment = check_file(args.file, overrides=overrides).raise_for_problems()
+        report = check_file(
+            args.file, overrides=overrides, max_agents=args.max_agents, remote=args.remote
+        )
+        experiment = report.raise_for_problems()
     unknown = [name for name in args.remote if name not in experiment.agent_names]
     if unknown:
         print(f"hilswarm run: --remote names unknown agents: {', '.join(unknown)}", file=sys.stderr)

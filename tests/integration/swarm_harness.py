@@ -10,6 +10,7 @@ spy uses (viewer to listen, operator to command).
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -66,8 +67,21 @@ def children_running(pid: int, module: bytes) -> list[int]:
 
 
 def agent_pids(pid: int) -> list[int]:
-    """Children of ``pid`` that are agent processes (not the recorder process)."""
-    return children_running(pid, b"hilswarm.agents.agent")
+    """Agent processes below ``pid``: its children, or the children of its agent fork server."""
+    servers = children_running(pid, b"hilswarm.agents.spawner")
+    agents = [c for c in children_running(pid, b"hilswarm.agents.agent") if c not in servers]
+    for server in servers:
+        agents += children_running(server, b"hilswarm.agents.agent")
+    return agents
+
+
+def agent_name_of(pid: int) -> str:
+    """The agent name of agent process ``pid``, from its command line or process title."""
+    words = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").split()
+    if b"--name" in words:  # a forked agent's title
+        return words[words.index(b"--name") + 1].decode()
+    config = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    return json.loads(config[config.index(b"--config") + 1])["name"]
 
 
 def pid_alive(pid: int) -> bool:
@@ -253,6 +267,12 @@ class Spy:
         with self._lock:
             payload = self.last.get(self._legacy.tick)
         return -1 if payload is None else bus.decode_tick(payload).k
+
+    def manager_state(self) -> str:
+        """The state the instance manager last announced on its status key ("" before any)."""
+        with self._lock:
+            payload = self.last.get(self.keys.manager_status)
+        return "" if payload is None else str(bus.decode_json(payload).get("state", ""))
 
     def control(self, command: bus.ControlCommand, reason: str = "test") -> None:
         """Send a control command as the operator (the manager forwards it to the agents)."""

@@ -14,6 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from hilswarm.agents.control import Controller, TickInput
+from hilswarm.agents.devices import Battery, HBridgeMotor
 from hilswarm.agents.vehicle import Vehicle
 
 
@@ -71,3 +72,65 @@ class ToyConsensus(Controller):
             else:
                 total += float(value[0]) - float(tick.y[0])
         return np.array([params["gain"] * total]), x_hat + (1.0 if missing else 0.0)
+
+
+class ToyCart(Vehicle):
+    """Two H-bridge motors and a battery (the cart of docs/vehicles.md) on a real board link.
+
+    Output: battery voltage [V]; inputs: signed duty of the left and right motor (-255..255).
+    """
+
+    n_inputs: ClassVar[int] = 2
+    n_outputs: ClassVar[int] = 1
+    input_names: ClassVar[tuple[str, ...]] = ("left", "right")
+    output_names: ClassVar[tuple[str, ...]] = ("battery_v",)
+    default_pinout: ClassVar[Mapping[str, Mapping[str, int | str]]] = {
+        "battery": {"pin": "A0"},
+        "drive": {
+            "left_fwd": 4,
+            "left_back": 7,
+            "left_pwm": 5,
+            "right_fwd": 8,
+            "right_back": 12,
+            "right_pwm": 6,
+        },
+    }
+
+    def setup_devices(self) -> None:
+        self.drive = self.add_device(HBridgeMotor, "drive", motors=("left", "right"))
+        self.battery = self.add_device(Battery, "battery", multiplier=3.0, low_v=6.5)
+
+    def read_outputs(self) -> np.ndarray:
+        return np.array([self.battery.sense()])
+
+    def actuate(self, u: np.ndarray) -> None:
+        self.drive.actuate("left", u[0])
+        self.drive.actuate("right", u[1])
+
+
+class FullBattery:
+    """A pin plant: 7.5 V on A0 through the cart's 1:3 divider, whatever the outputs."""
+
+    def advance(self, outputs: Mapping[int, int], dt: float) -> dict[int, float]:
+        return {14: 2.5}
+
+    def pose(self) -> np.ndarray:
+        return np.zeros(6)
+
+
+class ToyDrive(Controller):
+    """Drives both motors forward at ``duty`` (-255..255); no state."""
+
+    n_states: ClassVar[int] = 0
+    default_params: ClassVar[Mapping[str, Any]] = {"duty": 200.0}
+
+    def validate_params(self, params: Mapping[str, Any]) -> dict[str, Any]:
+        return {**self.default_params, **params}
+
+    def initial_state(self, params: Mapping[str, Any]) -> np.ndarray:
+        return np.zeros(0)
+
+    def step(
+        self, tick: TickInput, x_hat: np.ndarray, params: Mapping[str, Any]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([params["duty"], params["duty"]]), x_hat

@@ -38,8 +38,7 @@ def lead_follow(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.mark.parametrize("demo", DEMOS)
 def test_unchanged_replay_of_every_demo_is_bit_exact(demo: str, tmp_path: Path) -> None:
     checked = hilswarm("check", str(GRAPHS / demo))
-    if checked.returncode != 0:  # a demo that cannot run is the check tests' finding, not ours
-        pytest.skip(f"{demo} does not pass `hilswarm check`:\n{checked.stdout}{checked.stderr}")
+    assert checked.returncode == 0, f"{demo} fails check:\n{checked.stdout}{checked.stderr}"
     path = record(demo, tmp_path / "run.mcap")
     results = replay.replay(replay.load_recording(path), search_path=GRAPHS)
     assert results, f"{demo}: no agent replayed"

@@ -125,8 +125,10 @@ def test_policy_stop_brings_every_agent_to_safe_mode_and_ends_the_run(stop_run):
     assert "on_agent_safe = stop" in f1_safe["detail"]
     assert "leader" in f1_safe["detail"]
     # The run stopped shortly after the leader's safe mode, long before its 20 s (400 ticks).
+    # In lockstep f1, which follows the leader, may trail it by up to the window.
     last_k = recording["/f1/y"][-1]["k"]
-    assert k_safe <= last_k <= k_safe + 20, (k_safe, last_k)
+    window = load_experiment(STOP_EXPERIMENT).lockstep_window
+    assert k_safe - window <= last_k <= k_safe + 20, (k_safe, last_k)
     # The orchestrator recorded why it stopped.
     stopping = [m for m in recording["/orchestrator/status"] if m["state"] == "stopping"]
     assert len(stopping) == 1

@@ -20,6 +20,7 @@ from swarm_harness import (
     TOY_NEIGHBOURS,
     RunProcess,
     Spy,
+    agent_name_of,
     child_pids,
     connect_spy,
     pid_alive,
@@ -177,8 +178,12 @@ def test_kill_9_with_policy_continue_marks_agent_missing(
     if len(ran_after_loss) < 199 - k_lost - 1:
         skips = [m["k"] for m in ticks if m["agents"].get("a", {}).get("skipped")]
         assert skips, (k_lost, ran_after_loss)
-    # c does not hear b and never missed anything.
-    assert recording["/c/x_hat"][-1]["values"][0] == 0.0, recording["/c/x_hat"][-1]
+    # c does not hear b: it saw "no data" only at ticks after which a, the one agent it hears,
+    # was late (in realtime a late answer is listed missing in the next tick; under load that
+    # happens), never because of b, which was missing for the last ~170 ticks.
+    a_late = sum(1 for m in ticks if "a" in m["late"])
+    c_missing = recording["/c/x_hat"][-1]["values"][0]
+    assert c_missing <= a_late, (c_missing, a_late)
     assert ticks[-1]["missing"] == ["b"], ticks[-1]
 
 
@@ -307,7 +312,9 @@ def test_recorder_killed_run_goes_on_and_recording_is_recoverable(
     recording = read_recording(recovered)
     assert recording["/experiment"]
     ks = [m["k"] for m in recording["/a/y"]]
-    assert ks == list(range(len(ks)))  # every complete chunk, in order, nothing invented
+    # Every complete chunk, in order, nothing invented (realtime: an agent that fell behind
+    # under load runs the newest tick and skips the ones it missed).
+    assert ks == sorted(set(ks)) and ks[0] == 0 and ks[-1] <= 199, ks
     with recovered.open("rb") as f:
         assert make_reader(f).get_summary() is not None
 
@@ -381,9 +388,7 @@ def test_set_changes_parameters_between_ticks_and_is_acknowledged(
 def _pid_of(pids: list[int], agent: str) -> int:
     """The pid of ``agent`` among agent processes (its name is in the --config JSON)."""
     for pid in pids:
-        command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        config = command[command.index(b"--config") + 1]
-        if b'"name": "%s"' % agent.encode() in config:
+        if agent_name_of(pid) == agent:
             return pid
     raise AssertionError(f"no process for agent {agent}")
 
@@ -416,17 +421,17 @@ def test_lockstep_pause_holds_the_ticks_and_resume_goes_on(
     spies.append(spy)
     wait_for(lambda: spy.last_tick() >= 100, 60, "tick 100")
     spy.control(bus.ControlCommand.PAUSE, "test pause")
-    # Paused: the ticks released before the pause finish, then no tick message comes.
-    held = -1
-    for _ in range(100):  # at most ~10 s
-        time.sleep(0.1)
-        now = (spy.last_tick(), spy.count("hilswarm/toy/agent/a/y"))
-        if now == held:
-            break
-        held = now
-    else:
-        raise AssertionError(f"ticks did not stop after the pause: {held}")
-    time.sleep(0.5)
+    # The manager says it is paused; it sends no tick message after that. The ticks released
+    # before the pause are answered (tick 0 to the last released one), then nothing moves.
+    wait_for(lambda: spy.manager_state() == "paused", 30, "the manager's paused status")
+    last_released = spy.last_tick()
+    wait_for(
+        lambda: spy.count("hilswarm/toy/agent/a/y") == last_released + 1,
+        30,
+        f"the answers to the ticks released before the pause (up to {last_released})",
+    )
+    held = (last_released, last_released + 1)
+    time.sleep(0.5)  # held paused for a while: nothing may move meanwhile
     assert (spy.last_tick(), spy.count("hilswarm/toy/agent/a/y")) == held
     spy.control(bus.ControlCommand.RESUME, "test resume")
     wait_for(lambda: spy.last_tick() >= held[0] + 100, 60, "100 more ticks after resume")
@@ -442,3 +447,44 @@ def test_lockstep_pause_holds_the_ticks_and_resume_goes_on(
         agent_states = states(recording, name)
         assert agent_states[agent_states.index("paused") + 1] == "running", agent_states
         assert agent_states[-2:] == ["safe", "stopped"]
+
+
+def test_malformed_and_forged_input_is_dropped_counted_and_never_fatal(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    """Garbage on every key an agent listens to, and ticks far ahead of the window: the
+    lockstep run still completes every tick, no agent runs away, and the agents' status
+    messages count what they dropped."""
+    experiment = write_toy_experiment(tmp_path / "toy.toml", duration_s=4.0)
+    run = start(runs, tmp_path, experiment)
+    spy = connect_spy(run, "toy")
+    spies.append(spy)
+    keys = spy.keys
+    wait_for(lambda: spy.last_tick() >= 5, 60, "tick 5")
+    forged_tick = bus.encode_tick(bus.TickMessage(1_000_000, 1_000_000 * 0.02))
+    garbage = {
+        keys.tick: [b"\x01", b"\x00" * 21, forged_tick],
+        keys.y("a"): [b"\x01\x02\x03", b"", bus.encode_vector(10**9, 0.0, [1.0])],
+        keys.control: [b"\xff\xfe", b"[1, 2]", b'{"command": "fly"}', b"[" * 100_000],
+    }
+    for key, payloads in garbage.items():
+        for payload in payloads:
+            spy.session.put(key, payload)
+    replies = list(spy.session.get(keys.set("b"), payload=b"\x00not json", timeout=10.0))
+    assert replies and replies[0].err is not None
+    assert run.wait(60) == 0, run.output()
+    recording = read_recording(run.out)
+    for name in AGENTS:
+        ks = [m["k"] for m in recording[f"/{name}/y"]]
+        if name == "a":  # the recorder keeps what was put on a's key (the bus ACL stops that)
+            ks = [k for k in ks if k != 10**9]
+        assert ks == list(range(200)), name  # every tick once, none beyond the run
+        assert states(recording, name)[-2:] == ["safe", "stopped"]
+    last_b = statuses(recording, "b")[-1]  # b hears c, listens to tick, control and set
+    assert last_b["malformed"]["tick"] == 2, last_b
+    assert last_b["malformed"]["control"] == 4, last_b
+    assert last_b["malformed"]["set"] == 1, last_b
+    assert last_b["dropped"]["tick_ahead"] == 1, last_b
+    last_c = statuses(recording, "c")[-1]  # c hears a
+    assert last_c["malformed"]["y"] == 2, last_c
+    assert last_c["dropped"]["y_ahead"] == 1, last_c

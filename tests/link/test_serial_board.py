@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 from collections.abc import Iterator
 
 import pytest
@@ -314,3 +315,68 @@ def test_estop_and_set_id(pty_server: PtyWireServer, sim: SimBoard) -> None:
         assert isinstance(board.request(0x05, (78).to_bytes(2, "little")), SetIdReplyMsg)
     with fast(pty_server.url + "?board_id=78") as again:
         assert again.info.board_id == 78
+
+
+def test_request_estop_from_another_thread_while_an_exchange_waits(
+    pty_server: PtyWireServer, sim: SimBoard
+) -> None:
+    """The e-stop's own path: written beside an exchange that waits for a lost reply; the
+    board executes it at once; the exchange goes on waiting for its own reply."""
+    with fast(pty_server.url, retries=3, timeout_s=0.2) as board:
+        board.configure(BLIMP, watchdog_s=0)
+        board.exchange(BLIMP_WRITES, [14])
+        pty_server.server.faults.drop_replies = 1
+        result: list[object] = []
+        worker = threading.Thread(target=lambda: result.append(board.exchange(BLIMP_WRITES, [])))
+        worker.start()
+        deadline = time.monotonic() + 5
+        while pty_server.server.faults.drop_replies and time.monotonic() < deadline:
+            time.sleep(0.001)  # the exchange's first reply was dropped: it waits
+        assert worker.is_alive()
+        assert board.request_estop()
+        deadline = time.monotonic() + 5
+        while not sim.estopped and time.monotonic() < deadline:
+            time.sleep(0.001)
+        assert sim.estopped and sim.outputs[5] == 0  # safe while the exchange still waited
+        worker.join(5)
+        assert result and board.stats.stale_replies >= 1  # the ESTOP reply, discarded
+        assert board.exchange(BLIMP_WRITES, []).status & BoardStatus.ESTOPPED
+
+
+def test_an_estop_stays_latched_across_a_reconnection(
+    socket_server: SocketWireServer, sim: SimBoard
+) -> None:
+    with fast(socket_server.url) as board:
+        board.configure(BLIMP, watchdog_s=0)
+        assert board.request_estop()
+        socket_server.stop()
+        socket_server.start()
+        board.reconnect()  # re-applies the configuration (which clears an e-stop) ...
+        assert sim.estopped  # ... and e-stops again
+        board.configure(BLIMP, watchdog_s=0)  # an explicit configure clears it
+        assert not sim.estopped
+
+
+def test_abort_makes_a_waiting_request_give_up_at_once(pty_server: PtyWireServer) -> None:
+    with fast(pty_server.url, retries=50, timeout_s=0.2) as board:
+        board.configure(BLIMP, watchdog_s=0)
+        pty_server.server.faults.drop_replies = 100
+        errors: list[BaseException] = []
+
+        def exchange() -> None:
+            try:
+                board.exchange(BLIMP_WRITES, [])
+            except BoardConnectionError as exc:
+                errors.append(exc)
+
+        seen = pty_server.server.stats.requests
+        worker = threading.Thread(target=exchange)
+        worker.start()
+        deadline = time.monotonic() + 5
+        while pty_server.server.stats.requests == seen and time.monotonic() < deadline:
+            time.sleep(0.001)  # until the board has the request: the exchange is waiting
+        started = time.monotonic()
+        board.abort()
+        worker.join(5)
+        assert time.monotonic() - started < 1.0 and errors  # not 51 x 0.2 s
+        assert "aborted" in str(errors[0])

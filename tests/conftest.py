@@ -1,4 +1,4 @@
-"""Fixtures of the firmware tests: the firmware and the simulator harness, built once."""
+"""Fixtures shared by the test folders: the firmware and the simulator harness, built once."""
 
 from __future__ import annotations
 
@@ -24,20 +24,19 @@ def toolchain_missing() -> str | None:
 
 @pytest.fixture(scope="session")
 def firmware_built() -> Path:
-    """The firmware folder with the Uno build and the simavr harness in it (built if missing)."""
+    """The firmware folder with the Uno build and the simavr harness in it, up to date (make
+    rebuilds what changed: a harness built before a new control command would fail its test).
+    """
     reason = toolchain_missing()
     if reason is not None:
         pytest.skip(reason)
     root = firmware_dir()
-    harness = root / "build" / "hilswarm-simavr"
-    elf = root / "build" / "uno" / "hilswarm.elf"
-    if not (harness.is_file() and elf.is_file()):
-        result = subprocess.run(
-            ["make", "-s", "-C", str(root), "all"],
-            capture_output=True,
-            text=True,
-            timeout=900,
-            check=False,
-        )
-        assert result.returncode == 0, f"make -C firmware all failed:\n{result.stderr[-3000:]}"
+    result = subprocess.run(  # incremental: a no-op when everything is up to date
+        ["make", "-s", "-C", str(root), "all"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
+    assert result.returncode == 0, f"make -C firmware all failed:\n{result.stderr[-3000:]}"
     return root

@@ -1,0 +1,329 @@
+"""The agent's tick engine: which tick runs when, and with which neighbour outputs.
+
+Pure scheduling logic, no bus and no clock: the agent's bus adapter
+(:mod:`hilswarm.agents.agent`) decodes messages and hands them here with the time they arrived
+(``arrived`` [s], the agent's monotonic clock); its worker thread asks :meth:`TickEngine.take`
+for the next tick to run. Not thread-safe: the agent serialises calls with one lock, held only
+for these short calls (never around board I/O or the controller).
+
+Contract (``k``: tick index; ``window``: the experiment's ``lockstep_window`` [ticks]):
+
+* **Release horizon.** A tick message of the instance manager releases every tick up to its
+  ``k``. Lockstep: the agent steps through every released tick. Realtime: the agent runs the
+  newest released tick; ticks it fell behind on are *skipped* (reported with the next answer).
+* **Lockstep window.** The manager releases at most ``window`` ticks past the slowest agent's
+  last answer, so a genuine tick message never carries ``k > taken + window`` (``taken``: the
+  last tick this agent started). Anything further is rejected (``dropped["tick_ahead"]``): a
+  lockstep agent never runs more than ``window`` ticks ahead of its own last tick, whatever
+  arrives.
+* **Realtime rate.** Genuine realtime tick messages come one per period: a tick that claims
+  more periods than elapsed (on the agent's clock) since the newest accepted one was due,
+  plus :data:`REALTIME_SLACK_TICKS`, is rejected (``tick_ahead``), so a forged far-future
+  tick cannot freeze the schedule; a run's first tick must lie within the window. A tick
+  message more than :data:`STALE_TICK_PERIODS` late that arrives right behind the previous
+  one (it queued up while the agent was stalled) is counted ``stale`` (normal under load);
+  it is still released, and since the worker takes only the newest released tick, a burst
+  of queued ticks runs once.
+* **The past and other runs.** A tick below the horizon (``tick_past``), a tick whose ``t`` is
+  not ``k * dt`` (``tick_time``), a tick in the other mode than the run's first tick
+  (``tick_mode``) and a lost-agent index outside the experiment (``tick_missing``) are
+  rejected. (Messages of another run never reach an agent: the run id is part of the bus keys.)
+* **Neighbour history.** Neighbour outputs ``y_j`` are kept per neighbour from
+  ``taken - NEIGHBOUR_HISTORY`` on (a neighbour may run up to ``window`` ahead; a realtime
+  catch-up may use older ones), at most :data:`MAX_NEIGHBOUR_HISTORY` each. Outputs for ticks
+  not released yet (beyond the window) are rejected (``y_ahead``), a second output for the
+  same tick is rejected (``y_duplicate``), and so is an output whose size differs from that
+  neighbour's first (``y_size``); outputs too old to be used are ignored.
+* **Gather.** Tick ``k`` (``k > 0``, the agent actuating) uses each neighbour's ``y_{k-1}``;
+  a neighbour the manager reports missing counts as no data (``None``). Lockstep waits until
+  every other neighbour's ``y_{k-1}`` is in. Realtime after skipped ticks may use the newest
+  older output of a neighbour.
+
+Counters (:attr:`TickEngine.dropped`, :attr:`TickEngine.stale`) only grow; the agent adds the
+malformed-message counts of its decoders and publishes both in its status messages.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+#: Realtime: a tick message later than this many periods after its schedule is skipped.
+STALE_TICK_PERIODS = 1.5
+#: Realtime: how fast the estimate of the bus delay forgets its minimum [periods per tick].
+DELAY_ESTIMATE_RELAX = 0.01
+#: Realtime: ticks a message may run ahead of the periods elapsed since the newest one [ticks].
+REALTIME_SLACK_TICKS = 2.0
+#: Neighbour outputs kept per neighbour older than this agent's last tick [ticks].
+NEIGHBOUR_HISTORY = 4
+#: Bound on the neighbour outputs kept per neighbour (newer ones included) [ticks].
+MAX_NEIGHBOUR_HISTORY = 2048
+#: Realtime: neighbour outputs accepted past the newest released tick [ticks] (a neighbour's
+#: answer may overtake the tick message on its way to this agent).
+REALTIME_Y_AHEAD = 2
+#: Relative tolerance of a tick's ``t`` against ``k * dt``.
+TICK_TIME_RTOL = 1e-9
+
+#: Reasons a well-formed input is rejected (keys of :attr:`TickEngine.dropped`).
+DROP_REASONS = (
+    "tick_ahead",
+    "tick_past",
+    "tick_time",
+    "tick_mode",
+    "tick_missing",
+    "y_ahead",
+    "y_duplicate",
+    "y_size",
+)
+
+_NOBODY: frozenset[str] = frozenset()
+
+
+class Tick(NamedTuple):
+    """A tick to run now.
+
+    Attributes:
+        k: tick index.
+        t: experiment time of the tick [s].
+        skipped: ticks dropped before this one because the agent fell behind (realtime).
+        neighbours: each neighbour's ``y_{k-1}`` (``None``: no data), or ``None`` when the
+            tick gathers nothing (tick 0, or not actuating).
+    """
+
+    k: int
+    t: float
+    skipped: int
+    neighbours: dict[str, np.ndarray | None] | None
+
+
+class TickEngine:
+    """Scheduling state of one agent (see the module docstring).
+
+    Args:
+        neighbours: names of the agents whose outputs this agent uses.
+        agent_names: every agent of the experiment in graph order (tick messages name lost
+            agents by index).
+        dt: control period [s].
+        window: the experiment's lockstep window [ticks] (>= 1).
+    """
+
+    def __init__(
+        self, neighbours: Sequence[str], agent_names: Sequence[str], dt: float, window: int
+    ) -> None:
+        if not (math.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be > 0 [s], got {dt!r}")
+        if not (isinstance(window, int) and window >= 1):
+            raise ValueError(f"window must be an integer >= 1 [ticks], got {window!r}")
+        self.neighbours = tuple(neighbours)
+        self.agent_names = tuple(agent_names)
+        self.dt = float(dt)
+        self.window = window
+        self.index = {name: i for i, name in enumerate(self.neighbours)}
+        self.history: dict[str, dict[int, np.ndarray]] = {n: {} for n in self.neighbours}
+        self.received_from: set[str] = set()
+        self._sizes: dict[str, int] = {}  # each neighbour's output size, fixed by its first
+        #: Last tick started (taken by :meth:`take`); -1 before tick 0.
+        self.k = -1
+        #: Highest tick released by the manager.
+        self.horizon = -1
+        self.horizon_t = 0.0
+        #: ``True``/``False`` once the first tick fixed the run's mode.
+        self.realtime: bool | None = None
+        self.running = False  # ticks are handed out only while running
+        self.dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)
+        self.stale = 0
+        self._tick_missing = _NOBODY  # realtime: missing for the newest tick
+        self._lost = _NOBODY  # lockstep: agents the manager reports lost
+        self._delay_estimate = math.inf  # realtime: tick arrival - schedule, minimum [s]
+        self._last_arrival = -math.inf  # realtime: arrival of the previous tick message [s]
+        self._horizon_arrival = -math.inf  # realtime: arrival of the newest accepted tick [s]
+        self._late_alone = False  # realtime: the previous tick message was late on its own
+
+    # -- inputs ------------------------------------------------------------------------------
+
+    def on_tick(
+        self, k: int, t: float, missing: Sequence[int], realtime: bool, arrived: float
+    ) -> bool:
+        """A tick message releasing ticks up to ``k`` (at ``t`` [s]) arrived at ``arrived`` [s].
+
+        Args:
+            missing: indices (experiment order) of agents whose outputs are not coming.
+            realtime: the manager's mode.
+            arrived: arrival time [s, the agent's monotonic clock].
+
+        Returns:
+            ``True`` when it was accepted (a tick may be ready to run).
+        """
+        if self.realtime is None:
+            self.realtime = realtime
+        elif realtime != self.realtime:
+            self.dropped["tick_mode"] += 1
+            return False
+        if k < 0 or abs(t - k * self.dt) > TICK_TIME_RTOL * max(1.0, abs(t)):
+            self.dropped["tick_time"] += 1
+            return False
+        names = self.agent_names
+        if missing:
+            if max(missing) >= len(names):
+                self.dropped["tick_missing"] += 1
+                return False
+            lost = frozenset(names[i] for i in missing)
+        else:
+            lost = _NOBODY
+        if not realtime:
+            if k > self.k + self.window:
+                self.dropped["tick_ahead"] += 1
+                return False
+            if k < self.horizon:
+                self.dropped["tick_past"] += 1
+                return False
+            if lost:
+                self._lost = self._lost | lost
+            self.horizon = k
+            self.horizon_t = t
+            return True
+        if k <= self.horizon:
+            self.dropped["tick_past"] += 1
+            return False
+        if self.horizon < 0:
+            if k > self.window:  # the first tick of a run is 0
+                self.dropped["tick_ahead"] += 1
+                return False
+        else:
+            # The newest accepted tick was due (on this clock) at its schedule plus the
+            # smallest bus delay seen, or earlier if it came earlier.
+            due = min(self._horizon_arrival, self.horizon_t + self._delay_estimate)
+            if k - self.horizon > (arrived - due) / self.dt + REALTIME_SLACK_TICKS:
+                self.dropped["tick_ahead"] += 1
+                return False
+        if self._is_stale(t, arrived):
+            # It queued up while this agent was stalled. Still released (the last tick of a
+            # run may be one): the worker takes only the newest tick, so a burst runs once.
+            self.stale += 1
+        self.horizon, self.horizon_t, self._tick_missing = k, t, lost
+        self._horizon_arrival = arrived
+        return True
+
+    def _is_stale(self, t: float, arrived: float) -> bool:
+        """Realtime: did the tick of time ``t`` [s] queue up while this agent was stalled?
+
+        Its delay (arrival on this agent's clock minus ``t``) is compared with the smallest
+        delay seen (which slowly forgets, so a slower bus is accepted). A message more than
+        :data:`STALE_TICK_PERIODS` late that arrives right behind the previous one (a burst of
+        queued messages) is stale. A late one on its own runs; two in a row mean the schedule
+        moved (a resume) or the bus got slower, and the second becomes the new reference.
+        """
+        dt = self.dt
+        delay = arrived - t
+        burst = arrived - self._last_arrival < 0.5 * dt
+        self._last_arrival = arrived
+        if delay - self._delay_estimate > STALE_TICK_PERIODS * dt:
+            if burst and self.k >= 0:
+                return True
+            if self._late_alone:
+                self._delay_estimate = delay
+            self._late_alone = True
+            return False
+        self._late_alone = False
+        self._delay_estimate = min(delay, self._delay_estimate + DELAY_ESTIMATE_RELAX * dt)
+        return False
+
+    def on_neighbour(self, name: str, k: int, values: np.ndarray) -> bool:
+        """Neighbour ``name``'s output ``y_k`` arrived.
+
+        Returns:
+            ``True`` when it was kept and the next tick may now be ready to run.
+        """
+        history = self.history[name]
+        size = self._sizes.get(name)
+        if size is None:
+            self._sizes[name] = values.shape[0]
+        elif values.shape[0] != size:
+            self.dropped["y_size"] += 1
+            return False
+        if self.realtime:
+            limit = max(self.horizon, self.k) + REALTIME_Y_AHEAD
+        else:  # tick k must have been released, which the window bounds
+            limit = self.k + self.window + 1
+        if k > limit:
+            self.dropped["y_ahead"] += 1
+            return False
+        if k in history:
+            self.dropped["y_duplicate"] += 1
+            return False
+        oldest_kept = self.k - NEIGHBOUR_HISTORY
+        if k < oldest_kept:
+            return False  # too old to be used: nothing to keep
+        history[k] = values
+        self.received_from.add(name)
+        # Keep what a tick may still need: y_{self.k} and newer (a neighbour may run up to a
+        # lockstep window ahead), and a few older ones for a realtime catch-up.
+        while len(history) > 1:
+            oldest = min(history)
+            if oldest >= oldest_kept and len(history) <= MAX_NEIGHBOUR_HISTORY:
+                break
+            del history[oldest]
+        return self.running and self.horizon > self.k and k >= self.k
+
+    # -- running ticks -------------------------------------------------------------------------
+
+    def take(self, *, gather: bool) -> Tick | None:
+        """The next tick to run, or ``None`` while none is released or its inputs are not in.
+
+        A returned tick is started: :attr:`k` becomes its index.
+
+        Args:
+            gather: the tick uses the neighbours' outputs (the agent is actuating and has
+                sensed at least once); ignored for tick 0.
+        """
+        if not self.running or self.k >= self.horizon:
+            return None
+        if self.realtime:  # the newest released tick; those in between are skipped
+            k = self.horizon
+            skipped = k - self.k - 1 if self.k >= 0 else 0
+            missing, stale_ok, t = self._tick_missing, skipped > 0, self.horizon_t
+        else:
+            k, skipped, missing, stale_ok = self.k + 1, 0, self._lost, False
+            t = k * self.dt
+        neighbours = None
+        if gather and k > 0:
+            neighbours = self.gather(k - 1, missing, stale_ok)
+            if neighbours is None:
+                return None  # a neighbour's y_{k-1} is still on its way
+        self.k = k
+        return Tick(k, t, skipped, neighbours)
+
+    def gather(
+        self, k_prev: int, missing: frozenset[str], stale_ok: bool
+    ) -> dict[str, np.ndarray | None] | None:
+        """Neighbours' ``y_{k_prev}``, or ``None`` while one that is not missing is not in yet.
+
+        Args:
+            k_prev: the tick whose outputs are used.
+            missing: neighbours that count as no data.
+            stale_ok: a neighbour whose ``y_{k_prev}`` is not in gives its newest older output.
+        """
+        result: dict[str, np.ndarray | None] = {}
+        for name in self.neighbours:
+            history = self.history[name]
+            values = history.get(k_prev)
+            if values is not None:
+                result[name] = values
+            elif name in missing:
+                result[name] = None
+            elif stale_ok:
+                older = [k for k in history if k < k_prev]
+                result[name] = history[max(older)] if older else None
+            else:
+                return None
+        return result
+
+    def counters(self) -> Mapping[str, int]:
+        """Non-zero rejection counters (``dropped`` reasons and ``stale``), for status messages."""
+        counts = {reason: n for reason, n in self.dropped.items() if n}
+        if self.stale:
+            counts["stale"] = self.stale
+        return counts

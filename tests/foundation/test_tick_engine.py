@@ -1,0 +1,232 @@
+"""The pure tick engine: release horizon, window, history, staleness, gather, rejections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hilswarm.agents import bus
+from hilswarm.agents.tick_engine import (
+    NEIGHBOUR_HISTORY,
+    REALTIME_SLACK_TICKS,
+    STALE_TICK_PERIODS,
+    TickEngine,
+)
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+DT = 0.01
+NAMES = ("a", "b", "c")
+
+
+def engine(window: int = 8, neighbours: tuple[str, ...] = ("a", "c")) -> TickEngine:
+    e = TickEngine(neighbours, NAMES, DT, window)
+    e.running = True
+    return e
+
+
+def y(k: int, value: float = 0.0) -> np.ndarray:
+    return np.array([value + k])
+
+
+def feed(e: TickEngine, k: int, *names: str) -> None:
+    for name in names or e.neighbours:
+        e.on_neighbour(name, k, y(k))
+
+
+def test_lockstep_steps_through_every_released_tick_once_inputs_are_in() -> None:
+    e = engine()
+    assert e.take(gather=True) is None  # nothing released
+    assert e.on_tick(3, 3 * DT, (), False, arrived=0.0)
+    tick = e.take(gather=True)
+    assert tick is not None and (tick.k, tick.skipped, tick.neighbours) == (0, 0, None)
+    assert e.take(gather=True) is None  # tick 1 needs every neighbour's y_0
+    feed(e, 0, "a")
+    assert e.take(gather=True) is None
+    feed(e, 0, "c")
+    tick = e.take(gather=True)
+    assert tick is not None and tick.k == 1 and tick.t == pytest.approx(DT)
+    assert {n: v[0] for n, v in tick.neighbours.items()} == {"a": 0.0, "c": 0.0}
+
+
+def test_lockstep_never_runs_more_than_its_window_ahead_whatever_arrives() -> None:
+    e = engine(window=4)
+    for k in (4, 5, 1_000_000, 2**62):  # forged: further than the window past tick -1
+        assert not e.on_tick(k, k * DT, (), False, arrived=0.0)
+    assert e.dropped["tick_ahead"] == 4
+    assert e.on_tick(3, 3 * DT, (), False, arrived=0.0)
+    taken = []
+    while (tick := e.take(gather=False)) is not None:
+        taken.append(tick.k)
+    assert taken == [0, 1, 2, 3]
+    assert not e.on_tick(8, 8 * DT, (), False, arrived=0.0)  # 3 + 4 = 7 at most
+    assert e.on_tick(7, 7 * DT, (), False, arrived=0.0)
+
+
+def test_ticks_from_the_past_of_another_mode_or_with_a_wrong_time_are_rejected() -> None:
+    e = engine()
+    assert e.on_tick(5, 5 * DT, (), False, arrived=0.0)
+    assert e.on_tick(5, 5 * DT, (1,), False, arrived=0.0)  # a loss announced again: accepted
+    assert not e.on_tick(4, 4 * DT, (), False, arrived=0.0)
+    assert not e.on_tick(6, 6 * DT, (), True, arrived=0.0)
+    assert not e.on_tick(6, 1.0, (), False, arrived=0.0)
+    assert not e.on_tick(-1, -DT, (), False, arrived=0.0)
+    assert not e.on_tick(6, 6 * DT, (3,), False, arrived=0.0)  # no agent 3
+    assert e.counters() == {
+        "tick_past": 1,
+        "tick_mode": 1,
+        "tick_time": 2,
+        "tick_missing": 1,
+    }
+    assert e.horizon == 5
+
+
+def test_a_lost_agent_counts_as_no_data_from_then_on() -> None:
+    e = engine()
+    e.on_tick(3, 3 * DT, (0,), False, arrived=0.0)  # agent 0 = a is lost
+    assert e.take(gather=True).k == 0
+    feed(e, 0, "c")
+    tick = e.take(gather=True)
+    assert tick.neighbours["a"] is None and tick.neighbours["c"][0] == 0.0
+
+
+def test_outputs_of_a_neighbour_running_a_window_ahead_are_all_kept() -> None:
+    e = engine(window=32)
+    e.on_tick(10, 10 * DT, (), False, arrived=0.0)
+    for _ in range(11):
+        e.take(gather=False)
+    assert e.k == 10
+    for k in range(0, 30):  # the neighbour is up to 19 ticks ahead
+        e.on_neighbour("a", k, y(k))
+    assert sorted(e.history["a"]) == list(range(10 - NEIGHBOUR_HISTORY, 30))
+
+
+def test_neighbour_outputs_beyond_the_window_duplicates_and_resized_are_rejected() -> None:
+    e = engine(window=4)
+    assert not e.on_neighbour("a", 1_000_000, y(0))
+    assert not e.on_neighbour("a", 5, y(0))  # tick 5 cannot be released yet (-1 + 4 + 1 = 4)
+    e.on_neighbour("a", 4, y(4))
+    assert not e.on_neighbour("a", 4, y(99))  # a second y_4: the first one stays
+    assert e.history["a"][4][0] == 4
+    assert not e.on_neighbour("a", 3, np.zeros(3))  # a has one output
+    assert e.counters() == {"y_ahead": 2, "y_duplicate": 1, "y_size": 1}
+
+
+def test_a_flood_of_forged_outputs_never_evicts_the_ones_a_tick_needs() -> None:
+    e = engine(window=4)
+    e.on_tick(0, 0.0, (), False, arrived=0.0)
+    e.take(gather=True)
+    feed(e, 0)
+    for k in range(10**4):
+        e.on_neighbour("a", 10**6 + k, y(0))
+    assert e.on_tick(1, DT, (), False, arrived=0.0)
+    assert e.take(gather=True).neighbours["a"][0] == 0.0
+
+
+def test_realtime_runs_the_newest_tick_and_counts_the_skipped_ones() -> None:
+    e = engine()
+    e.on_tick(0, 0.0, (), True, arrived=100.0)
+    assert e.take(gather=True).k == 0
+    for k in range(1, 4):  # the agent was busy: ticks 1..3 came in on time
+        assert e.on_tick(k, k * DT, (), True, arrived=100.0 + k * DT)
+    feed(e, 1, "a")  # y_1 of a; c's y_2 is older than y_2 needed... realtime takes what it has
+    feed(e, 2, "c")
+    tick = e.take(gather=True)
+    assert (tick.k, tick.skipped) == (3, 2)
+    assert tick.neighbours["a"][0] == 1.0  # the newest older output
+    assert tick.neighbours["c"][0] == 2.0
+
+
+def test_realtime_ticks_that_queued_up_are_stale_and_a_moved_schedule_is_not() -> None:
+    e = engine()
+    clock = 100.0
+    e.on_tick(0, 0.0, (), True, arrived=clock)
+    e.take(gather=False)
+    for k in range(1, 50):  # on schedule: a constant delay of 1 ms
+        assert e.on_tick(k, k * DT, (), True, arrived=clock + k * DT + 0.001)
+    e.take(gather=False)
+    # A 50 ms stall: ticks 50..54 arrive together, 45 us apart; only the newest runs.
+    arrival = clock + 54 * DT + 0.0012
+    for k in range(50, 55):
+        assert e.on_tick(k, k * DT, (), True, arrived=arrival + 45e-6 * (k - 50))
+    assert e.stale == 2  # 51, 52: more than STALE_TICK_PERIODS late, right behind another
+    assert STALE_TICK_PERIODS * DT < 0.02
+    tick = e.take(gather=False)
+    assert (tick.k, tick.skipped) == (54, 4)
+    assert e.take(gather=False) is None
+    # A pause of 3 s (resume re-anchors the schedule): late, but alone, so accepted.
+    assert e.on_tick(55, 55 * DT, (), True, arrived=clock + 55 * DT + 3.0)
+    assert e.on_tick(56, 56 * DT, (), True, arrived=clock + 56 * DT + 3.0)
+
+
+def test_realtime_forged_future_ticks_are_rejected_and_do_not_freeze_the_schedule() -> None:
+    e = engine()
+    assert not e.on_tick(10**6, 10**6 * DT, (), True, arrived=0.0)  # a first tick is small
+    e.on_tick(0, 0.0, (), True, arrived=0.0)
+    for k in range(1, 20):
+        assert e.on_tick(k, k * DT, (), True, arrived=k * DT)
+        assert not e.on_tick(k + 1000, (k + 1000) * DT, (), True, arrived=k * DT + 1e-4)
+        assert not e.on_tick(k - 1, (k - 1) * DT, (), True, arrived=k * DT + 2e-4)  # replay
+    assert e.horizon == 19
+    assert e.dropped["tick_ahead"] == 20 and e.dropped["tick_past"] == 19
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    window=st.integers(1, 64),
+    messages=st.lists(
+        st.tuples(st.integers(-5, 10**9), st.booleans(), st.integers(0, 3)), max_size=60
+    ),
+)
+def test_property_lockstep_never_takes_more_than_window_past_its_last_tick(
+    window: int, messages: list[tuple[int, bool, int]]
+) -> None:
+    """Whatever tick messages arrive, in any order, each taken tick is the next one, and the
+    horizon never exceeds the last taken tick plus the window."""
+    e = engine(window=window, neighbours=())
+    last = -1
+    for k, take, n_take in messages:
+        e.on_tick(k, k * DT, (), False, arrived=0.0)
+        assert e.horizon <= last + window
+        if take:
+            for _ in range(n_take):
+                tick = e.take(gather=True)
+                if tick is None:
+                    break
+                assert tick.k == last + 1
+                last = tick.k
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    jitter=st.lists(st.floats(0.0, 0.004), min_size=5, max_size=80),
+    forged=st.lists(st.integers(3, 10**6), max_size=10),
+)
+def test_property_realtime_accepts_every_genuine_tick_on_time_and_no_forged_one(
+    jitter: list[float], forged: list[int]
+) -> None:
+    """Genuine ticks on schedule (with bus jitter below a period) are all accepted; ticks
+    claiming more than the slack ahead of the elapsed periods never are."""
+    e = engine(neighbours=())
+    for k, delay in enumerate(jitter):
+        arrived = 50.0 + k * DT + delay
+        for ahead in forged if k else ():  # forgeries right before each genuine tick
+            assert ahead > REALTIME_SLACK_TICKS
+            assert not e.on_tick(k + ahead, (k + ahead) * DT, (), True, arrived=arrived - 1e-5)
+        assert e.on_tick(k, k * DT, (), True, arrived=arrived), k
+        e.take(gather=False)
+    assert e.k == len(jitter) - 1
+
+
+def test_tick_messages_carry_the_mode() -> None:
+    for realtime in (False, True):
+        message = bus.TickMessage(7, 0.07, (1, 3), realtime=realtime)
+        assert bus.decode_tick(bus.encode_tick(message)) == message
+    with pytest.raises(bus.BusMessageError):
+        bus.decode_tick(bus.encode_tick(bus.TickMessage(1, 0.01, (2,)))[:-1])
+
+
+def test_engine_arguments_are_checked() -> None:
+    with pytest.raises(ValueError, match="dt"):
+        TickEngine((), NAMES, 0.0, 1)
+    with pytest.raises(ValueError, match="window"):
+        TickEngine((), NAMES, DT, 0)
