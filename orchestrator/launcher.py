@@ -1,14 +1,14 @@
 """Starts one OS process per agent and guarantees they are gone when the run ends.
 
-Each agent runs ``hilswarm.agents.agent --connect ENDPOINT --credentials FILE --config JSON`` (the
-credentials file, mode 0600, holds its password; the command line only its path) in its own
-process and process group (a new session), so a Ctrl-C at the terminal reaches only the orchestrator,
-which then stops the agents in order (safe mode first). By default the agents are forked by a
-fork server that imported the agent code once (:mod:`hilswarm.agents.spawner`: start-up in
-milliseconds instead of ~0.5 s of CPU per agent); ``start_method="exec"`` starts each with
-``python -m hilswarm.agents.agent`` instead. :meth:`AgentLauncher.stop` — called on every
-exit path, also from ``__exit__`` — waits for agents that were told to stop, then sends SIGTERM
-to every remaining process group and finally SIGKILL, each step with a timeout.
+Each agent runs ``hilswarm.agents.agent --connect ENDPOINT --credentials FILE --config JSON``
+(the credentials file, mode 0600, holds its password; the command line only its path) in its
+own process and process group (a new session), so a Ctrl-C at the terminal reaches only the
+orchestrator, which then stops the agents in order (safe mode first). By default the agents
+are forked by a fork server that imported the agent code once (:mod:`hilswarm.agents.spawner`:
+start-up in milliseconds instead of ~0.5 s of CPU per agent); ``start_method="exec"`` starts
+each with ``python -m hilswarm.agents.agent`` instead. :meth:`AgentLauncher.stop` — called on
+every exit path, also from ``__exit__`` — waits for agents that were told to stop, then sends
+SIGTERM to every remaining process group and finally SIGKILL, each step with a timeout.
 """
 
 from __future__ import annotations
