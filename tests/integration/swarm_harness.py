@@ -229,7 +229,8 @@ class RunProcess:
 
 class Spy:
     """Zenoh client sessions on a run's bus: one that subscribes to everything of the run (as
-    the run's viewer), one that sends operator commands (as its operator).
+    the run's viewer), one that sends operator commands (as its operator). On an ``--insecure``
+    run both are plain sessions (that may put anywhere).
 
     Keys are counted without the run id (``hilswarm/<exp>/agent/a/y``), as tests name them.
     """
@@ -238,13 +239,14 @@ class Spy:
         entry = run.entry()
         self.keys = bus.BusKeys(entry.name, entry.run_id)
         self._legacy = bus.BusKeys(entry.name)
-        viewer, operator = run.credentials(VIEWER), run.credentials(OPERATOR)
-        self.session = bus.open_session(
-            bus.client_config(viewer.endpoints, security=viewer.security())
-        )
-        self.operator = bus.open_session(
-            bus.client_config(operator.endpoints, security=operator.security())
-        )
+        if entry.secure:
+            viewer, operator = run.credentials(VIEWER), run.credentials(OPERATOR)
+            as_viewer = bus.client_config(viewer.endpoints, security=viewer.security())
+            as_operator = bus.client_config(operator.endpoints, security=operator.security())
+        else:  # hilswarm run --insecure: no credentials, no access control
+            as_viewer = as_operator = bus.client_config(entry.endpoints)
+        self.session = bus.open_session(as_viewer)
+        self.operator = bus.open_session(as_operator)
         self.counts: dict[str, int] = defaultdict(int)
         self.last: dict[str, bytes] = {}
         self._lock = threading.Lock()
@@ -271,7 +273,7 @@ class Spy:
     def manager_state(self) -> str:
         """The state the instance manager last announced on its status key ("" before any)."""
         with self._lock:
-            payload = self.last.get(self.keys.manager_status)
+            payload = self.last.get(self._legacy.manager_status)
         return "" if payload is None else str(bus.decode_json(payload).get("state", ""))
 
     def control(self, command: bus.ControlCommand, reason: str = "test") -> None:

@@ -28,6 +28,7 @@ from hilswarm.agents.credentials import Credentials
 from hilswarm.orchestrator.bus_access import OPERATOR, VIEWER, agent_user
 from swarm_harness import (
     RunProcess,
+    agent_name_of,
     connect_spy,
     read_recording,
     run_env,
@@ -235,9 +236,7 @@ def test_spoofed_liveliness_does_not_hide_a_killed_agent(
         spoofer = open_as(run, forge(run, agent_user("d")))
         sessions.append(spoofer)
         spoofer.liveliness().declare_token(spy.keys.alive("b"))
-        victim = next(
-            pid for pid in pids if b'"name": "b"' in Path(f"/proc/{pid}/cmdline").read_bytes()
-        )
+        victim = next(pid for pid in pids if agent_name_of(pid) == "b")
         os.kill(victim, signal.SIGKILL)
         assert run.wait(30) == 1, run.output()  # on_agent_loss = "stop"
     finally:

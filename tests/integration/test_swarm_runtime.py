@@ -454,9 +454,10 @@ def test_malformed_and_forged_input_is_dropped_counted_and_never_fatal(
 ) -> None:
     """Garbage on every key an agent listens to, and ticks far ahead of the window: the
     lockstep run still completes every tick, no agent runs away, and the agents' status
-    messages count what they dropped."""
+    messages count what they dropped. The agents' own defence: the run is ``--insecure``, so
+    the router's access control (tests/integration/test_bus_security.py) lets it all through."""
     experiment = write_toy_experiment(tmp_path / "toy.toml", duration_s=4.0)
-    run = start(runs, tmp_path, experiment)
+    run = start(runs, tmp_path, experiment, "--insecure")
     spy = connect_spy(run, "toy")
     spies.append(spy)
     keys = spy.keys
