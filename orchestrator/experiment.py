@@ -44,7 +44,7 @@ import numpy as np
 from hilswarm.agents.errors import LinkUrlError
 from hilswarm.agents.link.url import validate_link_url
 from hilswarm.orchestrator.graph_io import read_graph_file, validate_matrix
-from hilswarm.orchestrator.problems import ExperimentError, Problem, schema_problems
+from hilswarm.orchestrator.problems import ExperimentError, Problem, key_path, schema_problems
 from hilswarm.orchestrator.schema import (
     DEFAULT_LOCKSTEP_WINDOW,
     DEFAULT_MAX_LATE_FRACTION,
@@ -70,6 +70,7 @@ __all__ = [
     "Problem",
     "load_experiment",
     "load_parts",
+    "mocap_settings",
     "parse_experiment",
     "parse_link_overrides",
 ]
@@ -450,16 +451,8 @@ class _Loader:
                 if spec.mocap_body is not None:
                     self.problem(f"agents.{name}.mocap_body", "given but there is no [mocap]")
             return None
-        section: MocapSection | None = self.validate(MocapSection, self.data["mocap"], "mocap")
-        if section is None:
-            return None
-        ok = True
-        if section.host is None and section.system != "sim":
-            self.problem("mocap.host", 'missing; give the mocap server address, e.g. host = "..."')
-            ok = False
-        if section.sim is not None and section.system != "sim":
-            self.problem("mocap.sim", 'only for system = "sim"')
-            ok = False
+        mocap, problems = mocap_settings(self.data["mocap"], file=self.path)
+        self.parts.problems.extend(problems)
         if settings is not None and settings.mode == "lockstep":
             self.problem(
                 "experiment.mode", 'a [mocap] system runs on the wall clock; use mode = "realtime"'
@@ -471,13 +464,7 @@ class _Loader:
                 self.problem(
                     f"agents.{name}.mocap_body", f"body {spec.body!r} is already agent {other!r}'s"
                 )
-        if not ok:
-            return None
-        from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap files only
-
-        data = section.model_dump(exclude_none=True)
-        data.setdefault("host", "127.0.0.1")
-        return MocapSettings.from_dict(data)
+        return mocap
 
     def _gateway(self) -> Any:
         """``[gateway]`` as a GatewayConfig (``None`` when absent)."""
@@ -757,6 +744,38 @@ _FIELD_ADAPTERS: dict[str, TypeAdapter[Any]] = {
     key: TypeAdapter(info.rebuild_annotation(), config=_OVERRIDE_CONFIG)
     for key, info in ExperimentSection.model_fields.items()
 }
+
+
+def mocap_settings(
+    table: Any, *, file: Path | str, where: str = "mocap"
+) -> tuple[Any, list[Problem]]:
+    """A ``[mocap]`` table checked against the schema and read into a
+    :class:`~hilswarm.agents.mocap.config.MocapSettings`: ``(settings or None, problems)``.
+
+    Used for experiment files and for ``hilswarm mocap --system S --host H``.
+    """
+    try:
+        section = MocapSection.model_validate(table)
+    except ValidationError as exc:
+        return None, schema_problems(exc, file, where, MocapSection)
+    problems = []
+    if section.host is None and section.system != "sim":
+        problems.append(
+            Problem(
+                file,
+                key_path(where, ("host",)),
+                'missing; give the mocap server address, e.g. host = "..."',
+            )
+        )
+    if section.sim is not None and section.system != "sim":
+        problems.append(Problem(file, key_path(where, ("sim",)), 'only for system = "sim"'))
+    if problems:
+        return None, problems
+    from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap files only
+
+    data = section.model_dump(exclude_none=True)
+    data.setdefault("host", "127.0.0.1")
+    return MocapSettings.from_dict(data), []
 
 
 def _bytes(count: float) -> str:

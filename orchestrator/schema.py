@@ -19,6 +19,11 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal
 
+from hilswarm.agents.mocap.config import (
+    DEFAULT_HOLD_FRAMES,
+    DEFAULT_RATE_HZ,
+    DEFAULT_START_TIMEOUT_S,
+)
 from pydantic import (
     AfterValidator,
     BaseModel,
@@ -221,9 +226,9 @@ class MocapSection(_Table):
     """The mocap server's address; required except for sim (then 127.0.0.1)."""
     port: int | None = Field(None, gt=0, lt=65536)
     """The server's port (default: the system's)."""
-    rate_hz: float = Field(100.0, gt=0.0, le=10000.0)
+    rate_hz: float = Field(DEFAULT_RATE_HZ, gt=0.0, le=10000.0)
     """The system's frame rate [Hz]."""
-    hold_frames: int = Field(10, ge=1, le=100000)
+    hold_frames: int = Field(DEFAULT_HOLD_FRAMES, ge=1, le=100000)
     """Frames a lost body's pose is held before its agent goes safe."""
     up_axis: Literal["y", "z"] | None = None
     """Override the system's default up axis."""
@@ -231,7 +236,7 @@ class MocapSection(_Table):
     """Kalman measurement noise of the position [m]."""
     yaw_std_rad: float = Field(0.02, ge=0.0)
     """Kalman measurement noise of the yaw [rad]."""
-    start_timeout_s: float = Field(5.0, ge=0.0, le=600.0)
+    start_timeout_s: float = Field(DEFAULT_START_TIMEOUT_S, ge=0.0, le=600.0)
     """How long an agent waits for its body to be seen at start [s]."""
     sim: MocapSimSection | None = None
     """system = "sim" only: the simulated cameras."""

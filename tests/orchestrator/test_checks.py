@@ -330,3 +330,17 @@ def test_remote_agents_links_are_not_checked_for_local_devices(tmp_path: Path) -
     assert "does not exist" in " ".join(p.message for p in check_file(path).problems)
     # the leader's board is plugged into another machine (hilswarm run --remote leader)
     assert check_file(path, remote=["leader"]).ok
+
+
+def test_hilswarm_agent_checks_only_its_own_device(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (DATA / "shared_serial.toml").read_text()
+    text = text.replace('link = "socket://127.0.0.1:5760"', 'link = "/dev/ttyUSB9"', 1)
+    path = tmp_path / "remote.toml"
+    path.write_text(text)  # the leader's board is on another machine
+    argv = ["agent", "--connect", "tcp/127.0.0.1:9", "--experiment", str(path), "--name", "f1"]
+    assert main([*argv, "--link", "f1=/dev/ttyUSB8"]) == 2  # f1's own device is checked here
+    err = capsys.readouterr().err
+    assert "agents.f1.link: serial device '/dev/ttyUSB8' does not exist" in err
+    assert "agents.leader.link" not in err
