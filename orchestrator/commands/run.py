@@ -174,6 +174,13 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         print(f"hilswarm run: --remote names unknown agents: {', '.join(unknown)}", file=sys.stderr)
         return 2
+    if args.live:  # a given port: refuse a busy one before anything starts
+        from hilswarm.orchestrator.live_view import port_problem  # noqa: PLC0415 - --live only
+
+        problem = port_problem(args.live)
+        if problem:
+            print(f"hilswarm run: {problem}", file=sys.stderr)
+            return 2
     out = args.out or default_output(experiment, datetime.datetime.now())
     run_id = secrets.token_hex(4)
     secure = not (args.insecure or args.connect)

@@ -6,6 +6,8 @@ import asyncio
 import json
 import re
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -107,3 +109,21 @@ def test_a_client_sees_channels_and_messages_of_a_running_experiment(
     }
     event_only = {"/orchestrator/status"}  # first written when the run stops or pauses
     assert topics - event_only <= set(channels), topics - set(channels)
+
+
+def test_a_busy_live_port_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    from hilswarm.orchestrator.live_view import LiveView
+
+    busy = LiveView(0)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(LEAD_FOLLOW),
+             "--out", str(tmp_path / "run.mcap"), "--port", str(free_port()),
+             "--live", str(busy.port)],
+            capture_output=True, text=True, timeout=120, check=False,
+        )  # fmt: skip
+    finally:
+        busy.close()
+    assert result.returncode == 2, result.stderr
+    assert f"--live: cannot listen on 127.0.0.1:{busy.port}" in result.stderr
+    assert not (tmp_path / "run.mcap").exists()
