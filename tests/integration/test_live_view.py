@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import websockets
-from swarm_harness import REPO, RunProcess, wait_for
+from swarm_harness import REPO, RunProcess, run_env, wait_for
 
 LEAD_FOLLOW = REPO / "graphs" / "lead_follow.toml"
 # foxglove-sdk >= 0.x negotiates "foxglove.sdk.v1": the foxglove.websocket.v1 protocol under its
@@ -118,9 +118,8 @@ def test_a_busy_live_port_is_refused_before_anything_starts(tmp_path: Path) -> N
     try:
         result = subprocess.run(
             [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(LEAD_FOLLOW),
-             "--out", str(tmp_path / "run.mcap"), "--port", str(free_port()),
-             "--live", str(busy.port)],
-            capture_output=True, text=True, timeout=120, check=False,
+             "--out", str(tmp_path / "run.mcap"), "--live", str(busy.port)],
+            capture_output=True, text=True, timeout=120, check=False, env=run_env(tmp_path),
         )  # fmt: skip
     finally:
         busy.close()
