@@ -61,6 +61,8 @@ HARNESS_RELPATH = Path("build") / "hilswarm-simavr"
 _START_TIMEOUT_S = 10.0
 #: Seconds allowed for one control-channel reply.
 _COMMAND_TIMEOUT_S = 5.0
+#: Shortest control-command timeout a board gives its harness [s].
+_MIN_COMMAND_TIMEOUT_S = 1.0
 #: Seconds given to each stop stage (quit, SIGTERM) before the next.
 _STOP_STAGE_S = 2.0
 
@@ -145,10 +147,15 @@ class SimavrHarness:
         self.process: subprocess.Popen[bytes] | None = None
         self.pty_path = ""
         self._stdout_buffer = bytearray()
+        #: How long one control command may take [s]; past it the harness counts as stalled.
+        self.command_timeout_s = _COMMAND_TIMEOUT_S
+        self._unanswered = 0  # commands whose reply did not come in time (it comes later)
         self._stderr_file: IO[bytes] | None = None
 
     def start(self) -> str:
         """Start the process (own process group); return the pty path it bridges the UART to."""
+        self._stdout_buffer = bytearray()
+        self._unanswered = 0
         sim = SIMAVR_PROFILES[self.profile]
         command = [
             str(self.harness_path),
@@ -226,18 +233,30 @@ class SimavrHarness:
         return line.decode(errors="replace").rstrip("\r")
 
     def command(self, line: str) -> str:
-        """Send one control command; return its reply line (raises on ``err ...``)."""
+        """Send one control command; return its reply line (raises on ``err ...``).
+
+        A harness that does not answer within :attr:`command_timeout_s` (stopped, stalled)
+        raises :class:`SimulatorError`; the reply it owes is read and dropped before the next
+        command's, so replies never go to the wrong command.
+        """
         process = self.process
         if process is None or process.stdin is None or process.poll() is not None:
             raise SimulatorError(
                 f"simavr: harness is not running (command {line!r}); stderr: {self.stderr_tail()}"
             )
+        while self._unanswered:  # late replies of commands that timed out
+            self._read_line(self.command_timeout_s)
+            self._unanswered -= 1
         try:
             process.stdin.write(line.encode() + b"\n")
             process.stdin.flush()
         except OSError as exc:
             raise SimulatorError(f"simavr: harness control channel closed: {exc}") from exc
-        reply = self._read_line(_COMMAND_TIMEOUT_S)
+        try:
+            reply = self._read_line(self.command_timeout_s)
+        except SimulatorError:
+            self._unanswered += 1
+            raise
         if reply.startswith("err"):
             raise SimulatorError(f"simavr: harness refused {line!r}: {reply}")
         return reply
@@ -347,6 +366,13 @@ class SimavrBoard(Board):
         # reconnect_timeout_s is how long reconnect() (the agent) may keep trying instead.
         self._link_timeout_s = float(serial_options.pop("reconnect_timeout_s", 5.0))
         self._serial_options = {**serial_options, "reconnect_timeout_s": 0.0}
+        # A plant step's control command is part of the exchange: a harness that does not
+        # answer it within one serial request's time is a stalled board too.
+        self.harness.command_timeout_s = max(
+            _MIN_COMMAND_TIMEOUT_S,
+            float(serial_options.get("timeout_s", 0.25))
+            * (int(serial_options.get("retries", 3)) + 1),
+        )
         self.serial: SerialBoard | None = None
         self._modes: dict[int, PinMode] = {}
         self._last_t_us: int | None = None
@@ -508,14 +534,11 @@ class SimavrBoard(Board):
         return f"SimavrBoard({self.profile!r}, paced={self.paced}, url={self.url!r})"
 
 
-def board_from_url(url: str, **options: Any) -> SimavrBoard:
-    """Build a :class:`SimavrBoard` from ``simavr://[uno|duemilanove|fio][?paced=1&board_id=N]``.
-
-    ``options`` go to :class:`SimavrBoard` (``plant=``, ``dt=``, serial options).
+def parse_url(url: str) -> tuple[str, dict[str, Any]]:
+    """Parse ``simavr://[uno|duemilanove|fio][?paced=1&board_id=N]`` into ``(profile, options)``.
 
     Raises:
         LinkUrlError: wrong scheme, unknown profile or option, bad value.
-        SimulatorError: the firmware or harness is not built.
     """
     parts = urlsplit(url)
     if parts.scheme.lower() != "simavr":
@@ -526,9 +549,8 @@ def board_from_url(url: str, **options: Any) -> SimavrBoard:
             f"{url!r}: unknown board profile {profile!r}; known: "
             f"{', '.join(sorted(SIMAVR_PROFILES))}"
         )
+    options: dict[str, Any] = {}
     for key, value in parse_qsl(parts.query, keep_blank_values=True):
-        if key in options:
-            raise LinkUrlError(f"{url!r}: {key} given both in the URL and as an option")
         if key == "paced":
             if value not in ("0", "1", "true", "false"):
                 raise LinkUrlError(f"{url!r}: paced must be 0 or 1, got {value!r}")
@@ -539,4 +561,36 @@ def board_from_url(url: str, **options: Any) -> SimavrBoard:
             options["board_id"] = int(value)
         else:
             raise LinkUrlError(f"{url!r}: unknown option {key!r} (known: paced, board_id)")
-    return SimavrBoard(profile, url=url, **options)
+    return profile, options
+
+
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check ``url`` as :func:`board_from_url` would, and (``local``: the board runs on this
+    machine) that its firmware is built.
+
+    Raises:
+        LinkUrlError: a bad URL, or the firmware/harness of its profile is not built.
+    """
+    profile, _ = parse_url(url)
+    if not local:
+        return
+    try:
+        locate_build(profile)
+    except SimulatorError as exc:
+        raise LinkUrlError(f"{url!r}: {exc}") from None
+
+
+def board_from_url(url: str, **options: Any) -> SimavrBoard:
+    """Build a :class:`SimavrBoard` from ``simavr://[uno|duemilanove|fio][?paced=1&board_id=N]``.
+
+    ``options`` go to :class:`SimavrBoard` (``plant=``, ``dt=``, serial options).
+
+    Raises:
+        LinkUrlError: wrong scheme, unknown profile or option, bad value.
+        SimulatorError: the firmware or harness is not built.
+    """
+    profile, from_url = parse_url(url)
+    clash = sorted(set(from_url) & set(options))
+    if clash:
+        raise LinkUrlError(f"{url!r}: {', '.join(clash)} given both in the URL and as an option")
+    return SimavrBoard(profile, url=url, **from_url, **options)

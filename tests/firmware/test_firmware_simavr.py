@@ -7,13 +7,15 @@ toolchain itself is absent.
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import serial
-from hilswarm.agents.errors import BoardRequestError
+from hilswarm.agents.errors import BoardRequestError, SimulatorError
 from hilswarm.agents.link.board import (
     PROTOCOL_VERSION,
     BoardStatus,
@@ -279,3 +281,24 @@ def test_simavr_url_options(firmware_built: Path) -> None:
         board_for_url("simavr://uno?speed=3")
     with pytest.raises(ValueError, match="unknown board profile 'mega'"):
         board_for_url("simavr://mega")
+
+
+def test_a_stalled_harness_times_out_and_its_late_reply_goes_to_no_other_command(
+    firmware_built: Path,
+) -> None:
+    harness = SimavrHarness("uno")
+    harness.start()
+    harness.command_timeout_s = 0.3
+    try:
+        os.kill(harness.process.pid, signal.SIGSTOP)
+        try:
+            with pytest.raises(SimulatorError, match="no answer"):
+                harness.command("ping")  # its "ok" comes after SIGCONT
+        finally:
+            os.kill(harness.process.pid, signal.SIGCONT)
+        assert harness.command("state").startswith("{")  # not the late "ok" of the ping
+        assert harness.command("mute 1") == "ok"
+        with pytest.raises(SimulatorError, match="expected 0 or 1"):
+            harness.command("mute 2")
+    finally:
+        harness.stop()

@@ -8,6 +8,7 @@ import os
 import signal
 import time
 from collections.abc import Iterator, Mapping
+from pathlib import Path
 
 import pytest
 from agent_rig import DT, Rig, cart_config, cart_hardware
@@ -18,10 +19,19 @@ from hilswarm.agents.link.serial_board import SerialBoard
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.link.simavr import SimavrBoard
 from hilswarm.agents.link.wire_server import SocketWireServer
-from swarm_harness import wait_for
+from swarm_harness import (
+    RunProcess,
+    agent_name_of,
+    children_running,
+    connect_spy,
+    read_recording,
+    wait_for,
+)
 from swarm_toys import FullBattery
 
 pytestmark = pytest.mark.integration
+
+REPO = Path(__file__).resolve().parents[2]
 
 #: Output pins of the toy cart: direction pins and the two PWM enables.
 DIRECTION_PINS = (4, 7, 8, 12)
@@ -181,3 +191,58 @@ def test_a_link_that_does_not_come_back_in_time_makes_the_agent_safe(rigs: list[
     # Safe, it still answers every tick (no data) at once, without waiting on the dead link.
     rig.run_ticks(6, 12, timeout_s=2.0)
     assert rig.close() == 0
+
+
+@pytest.fixture
+def runs() -> Iterator[list[RunProcess]]:
+    """Runs started by a test; every one is killed (with its agents) afterwards."""
+    started: list[RunProcess] = []
+    yield started
+    for run in started:
+        run.cleanup()
+
+
+@pytest.mark.usefixtures("firmware_built")
+def test_a_stalled_simavr_board_does_not_end_a_realtime_run(
+    tmp_path: Path, runs: list[RunProcess]
+) -> None:
+    """`hilswarm run` with the leader on the real firmware in simavr; its simulator is stopped
+    (SIGSTOP) for 2 s mid-run. The leader goes degraded and comes back; nobody is lost."""
+    run = RunProcess(
+        tmp_path,
+        REPO / "graphs" / "lead_follow.toml",
+        "--no-check",
+        "--mode",
+        "realtime",
+        "--duration",
+        "8",
+        "--link",
+        "leader=simavr://uno",
+    )
+    runs.append(run)
+    spy = connect_spy(run, "lead_follow")
+    try:
+        pids = run.remember_agents(3)
+        leader = next(p for p in pids if agent_name_of(p) == "leader")
+        wait_for(lambda: children_running(leader, b"hilswarm-simavr"), 60, "the simulator")
+        harness = children_running(leader, b"hilswarm-simavr")[0]
+        wait_for(lambda: spy.last_tick() >= 40, 60, "tick 40")
+        os.kill(harness, signal.SIGSTOP)
+        try:
+            time.sleep(2.0)  # the board is stalled for 2 s
+        finally:
+            os.kill(harness, signal.SIGCONT)
+        code = run.wait(60)
+    finally:
+        spy.close()
+    output = run.output()
+    recording = read_recording(run.out)
+    seen = [m["state"] for m in recording["/leader/status"]]
+    leader_states = [s for i, s in enumerate(seen) if i == 0 or seen[i - 1] != s]
+    assert "degraded" in leader_states, leader_states
+    assert leader_states[leader_states.index("degraded") + 1] == "running", leader_states
+    for name in ("leader", "f1", "f2"):
+        states = [m["state"] for m in recording[f"/{name}/status"]]
+        assert "lost" not in states and states[-2:] == ["safe", "stopped"], (name, states)
+    assert recording["/leader/y"][-1]["k"] >= 150, output  # it rejoined and ran to the end
+    assert code in (0, 3), output  # 3: completed, degraded (where the run reports that)
