@@ -17,7 +17,7 @@ import pytest
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.link.wire_server import SocketWireServer
 from hilswarm.agents.mcap_io import McapJsonWriter, iter_messages
-from swarm_harness import free_port, write_toy_experiment
+from swarm_harness import write_toy_experiment
 
 HERE = Path(__file__).resolve().parent
 GRAPHS = HERE.parents[1] / "graphs"
@@ -59,13 +59,13 @@ def test_out_is_never_replaced_without_force(tmp_path: Path) -> None:
     keep = tmp_path / "keep.mcap"
     keep.write_bytes(OLD)
     code, output = hilswarm("run", str(experiment), "--out", str(keep), "--no-check",
-                            "--port", str(free_port()), cwd=tmp_path)  # fmt: skip
+                            cwd=tmp_path)  # fmt: skip
     assert code == 2, output
     assert "--force" in output and "Traceback" not in output, output
     assert keep.read_bytes() == OLD and files(tmp_path) == ["keep.mcap"]
     # with --force it is replaced by the new recording (and the run is clean)
     code, output = hilswarm("run", str(experiment), "--out", str(keep), "--no-check", "--force",
-                            "--port", str(free_port()), cwd=tmp_path)  # fmt: skip
+                            cwd=tmp_path)  # fmt: skip
     assert code == 0, output
     assert "outcome: clean (exit status 0)" in output, output
     assert files(tmp_path) == ["keep.mcap"]
@@ -75,14 +75,14 @@ def test_out_is_never_replaced_without_force(tmp_path: Path) -> None:
 def test_a_run_that_fails_before_its_first_tick_touches_no_recording(tmp_path: Path) -> None:
     keep = tmp_path / "keep.mcap"
     keep.write_bytes(OLD)
-    # a serial device that does not exist: the agent process fails at start-up
+    # a serial device that does not exist: refused as bad input before anything starts
     code, output = hilswarm(
         "run", str(GRAPHS / "lead_follow.toml"), "--duration", "1", "--no-check", "--force",
-        "--link", "leader=/dev/ttyUSB9", "--out", str(keep), "--port", str(free_port()),
+        "--link", "leader=/dev/ttyUSB9", "--out", str(keep),
         "--start-timeout", "60", cwd=tmp_path,
     )  # fmt: skip
-    assert code == 1, output
-    assert "outcome: failed" in output and "Traceback" not in output, output
+    assert code == 2, output
+    assert "Traceback" not in output, output
     assert keep.read_bytes() == OLD and files(tmp_path) == ["keep.mcap"], output
     # the bus port is taken: the run cannot open its bus
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
@@ -112,7 +112,7 @@ def test_an_agent_safe_from_its_first_tick_fails_the_run(
     out = tmp_path / "run.mcap"
     code, output = hilswarm(
         "run", str(GRAPHS / "lead_follow.toml"), "--duration", "1", "--no-check",
-        "--link", f"leader={board_server.url}", "--out", str(out), "--port", str(free_port()),
+        "--link", f"leader={board_server.url}", "--out", str(out),
         cwd=tmp_path,
     )  # fmt: skip
     assert code == 1, output
@@ -154,8 +154,8 @@ def in_small_tmpfs(size: str, folder: Path, script: str, keep: Path) -> tuple[in
 def test_a_full_disk_stops_the_run_safely_by_default(tmp_path: Path) -> None:
     experiment = write_toy_experiment(tmp_path / "toy.toml", duration_s=600.0)
     disk, keep = tmp_path / "disk", tmp_path / "keep"
-    command = " ".join([*CLI, "run", str(experiment), "--no-check", "--out", f"{disk}/run.mcap",
-                        "--port", str(free_port())])  # fmt: skip
+    command = " ".join([*CLI, "run", str(experiment), "--no-check", "--out",
+                        f"{disk}/run.mcap"])  # fmt: skip
     code, output = in_small_tmpfs("256k", disk, command, keep)
     assert code == 3, output
     assert "the disk is full" in output and "on_recording_failure = stop" in output, output
