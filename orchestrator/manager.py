@@ -407,6 +407,9 @@ class InstanceManager:
             logger.warning("operator request not understood: %s", exc)
             return
         payload = bus.encode_control(command, reason=reason)
+        if command is bus.ControlCommand.STOP:
+            with self._lock:
+                self._stopping = True  # the agents' safe states from here on are the stop's
         self._events.put((_CONTROL, payload))  # first: the manager knows before any agent
         self._control_pub.put(payload)
 
