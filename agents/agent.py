@@ -152,7 +152,7 @@ class _LinkDownError(HilswarmError, ConnectionError):
 # ---------------------------------------------------------------------------------------------
 
 # Main-thread queue items: (kind, payload...). Rare: never one per tick.
-_SET, _MANAGER_GONE, _SIGNAL, _FAILED, _WAKE = range(5)
+_MANAGER_GONE, _SIGNAL, _FAILED, _WAKE = range(4)
 # Worker queue items: ``None`` (ticks may be ready) or (kind, payload...).
 _W_SET, _W_CONTROL, _W_ESTOP, _W_QUIT = range(4)
 
