@@ -143,10 +143,6 @@ class _QuitRequestedError(HilswarmError, RuntimeError):
     """Internal: the worker was told to quit while riding out a board link fault."""
 
 
-class _LinkDownError(HilswarmError, ConnectionError):
-    """Internal: the board link failed for good; ticks answer without it."""
-
-
 # ---------------------------------------------------------------------------------------------
 # The agent
 # ---------------------------------------------------------------------------------------------
@@ -220,6 +216,7 @@ class Agent:
         self._telemetry_due = math.inf  # wall clock [s, self._clock] of the next batch
         self.telemetry_batches = 0
         self._counters_published: tuple[int, ...] = ()
+        self._counters_due = -math.inf  # clock [s] of the next counters check
         self._extra_listeners: tuple[threading.Event, threading.Event] = (
             threading.Event(),
             threading.Event(),
@@ -314,7 +311,12 @@ class Agent:
         self._status_pub.put(bus.encode_json(message))
 
     def _publish_changed_counters(self) -> None:
-        """A status of kind ``inputs`` when the counters changed since the last one."""
+        """A status of kind ``inputs`` when the counters changed since the last one (at most
+        once per :data:`COUNTERS_PERIOD_S`)."""
+        now = self._clock()
+        if now < self._counters_due:
+            return
+        self._counters_due = now + COUNTERS_PERIOD_S
         with self._engine_lock:
             snapshot = (
                 *self.engine.dropped.values(),
@@ -776,9 +778,7 @@ class Agent:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
                 self._u = u_new
-            if self._link_down:
-                raise _LinkDownError("the board link is down")
-            if k > 0:  # tick 0 senses what connect() primed: the initial state
+            if k > 0 and not self._link_down:  # tick 0 senses what connect() primed
                 try:
                     vehicle.exchange()
                 except LINK_FAULTS as exc:
@@ -790,9 +790,6 @@ class Agent:
                 y = np.asarray(y, dtype=np.float64)
         except _QuitRequestedError:
             raise
-        except _LinkDownError:  # safe already; no data, and no wait on the dead link
-            t2 = clock()
-            y = np.full(int(vehicle.n_outputs), np.nan)
         except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
             t2 = clock()
             if isinstance(exc, LINK_FAULTS):
