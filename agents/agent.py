@@ -65,6 +65,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
@@ -77,6 +78,7 @@ from hilswarm.agents.agent_config import (  # also this module's interface
     AgentHardware,
     build_hardware,
 )
+from hilswarm.agents.credentials import Credentials
 from hilswarm.agents.errors import (
     BoardConnectionError,
     BoardError,
@@ -159,8 +161,10 @@ class Agent:
     Args:
         config: what to build and where it sits in the graph.
         endpoints: Zenoh endpoints to connect to (the orchestrator's router or a zenohd).
-        hardware_factory: builds vehicle/board/controller from the config and the bus
-            endpoints (keyword ``endpoints``; tests may pass their own).
+        security: the agent's credentials for the run's router (``None``: none).
+        hardware_factory: builds vehicle/board/controller from the config, the bus endpoints
+            and the credentials (keywords ``endpoints``, ``security``; tests may pass their
+            own).
         clock: monotonic clock [s] used for tick timings.
         startup_timeout_s: bound on waiting for the bus and the manager.
     """
@@ -170,13 +174,15 @@ class Agent:
         config: AgentConfig,
         endpoints: Sequence[str],
         *,
+        security: bus.SessionSecurity | None = None,
         hardware_factory: Callable[..., AgentHardware] = build_hardware,
         clock: Callable[[], float] = time.perf_counter,
         startup_timeout_s: float = DEFAULT_STARTUP_TIMEOUT_S,
     ) -> None:
         self.config = config
         self.endpoints = list(endpoints)
-        self.keys = bus.BusKeys(config.experiment)
+        self.keys = bus.BusKeys(config.experiment, config.run_id)
+        self._security = security
         self._hardware_factory = hardware_factory
         self._clock = clock
         self._startup_timeout_s = startup_timeout_s
@@ -378,7 +384,7 @@ class Agent:
         return event
 
     def _open_bus(self) -> zenoh.Session:
-        session = bus.open_session(bus.client_config(self.endpoints))
+        session = bus.open_session(bus.client_config(self.endpoints, security=self._security))
         self._session = session
         self._status_pub = session.declare_publisher(
             self.keys.status(self.config.name), **bus.DATA_QOS
@@ -470,7 +476,11 @@ class Agent:
         try:
             session = self._open_bus()
             self._transition("connect", "")
-            self.use_hardware(self._hardware_factory(self.config, endpoints=self.endpoints))
+            self.use_hardware(
+                self._hardware_factory(
+                    self.config, endpoints=self.endpoints, security=self._security
+                )
+            )
             self._attach_pose_source(session)
             self._transition("configure", "")
             self._declare(session)
@@ -773,11 +783,13 @@ class Agent:
                 logger.exception("%s: controller failed at tick %d", self.config.name, k)
                 self._go_safe(f"controller failed at tick {k}: {type(exc).__name__}: {exc}")
                 u_new = None
-        t1 = clock()
+        t1 = t_link = clock()
+        retries = _link_retries(hw.board)
         try:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
                 self._u = u_new
+            t_link = clock()
             if k > 0 and not self._link_down:  # tick 0 senses what connect() primed
                 try:
                     vehicle.exchange()
@@ -805,9 +817,9 @@ class Agent:
         if skipped:
             self.skipped += skipped
         x_hat = hw.model.x_hat if u_new is not None else None
-        report = bus.encode_report(
-            bus.AgentTiming(t1 - t0, t2 - t1, t3 - t2, skipped), u_new, x_hat
-        )
+        retries = _link_retries(hw.board) - retries
+        timing = bus.AgentTiming(t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries)
+        report = bus.encode_report(timing, u_new, x_hat)
         y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
             reason = getattr(vehicle, "safe_mode_reason", "") or "vehicle entered safe mode"
@@ -962,6 +974,11 @@ class Agent:
 MANAGER_NAME = "_manager"
 
 
+def _link_retries(board: Any) -> int:
+    """Re-sends of board requests so far (0 for links that do not count them)."""
+    return int(getattr(getattr(board, "stats", None), "retries", 0) or 0)
+
+
 def _jsonable(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
@@ -974,9 +991,11 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def run_agent(config: AgentConfig, endpoints: Sequence[str]) -> int:
+def run_agent(
+    config: AgentConfig, endpoints: Sequence[str], security: bus.SessionSecurity | None = None
+) -> int:
     """Run one agent in this process until stopped; SIGINT/SIGTERM stop it cleanly."""
-    agent = Agent(config, endpoints)
+    agent = Agent(config, endpoints, security=security)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         agent.request_stop(f"signal {signal.Signals(signum).name}")
@@ -987,9 +1006,13 @@ def run_agent(config: AgentConfig, endpoints: Sequence[str]) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m hilswarm.agents.agent --connect ENDPOINT --config JSON``."""
+    """``python -m hilswarm.agents.agent [--connect ENDPOINT] [--credentials FILE] --config JSON``.
+
+    The endpoints default to those of the credentials file.
+    """
     parser = argparse.ArgumentParser(prog="python -m hilswarm.agents.agent")
-    parser.add_argument("--connect", action="append", required=True, help="Zenoh endpoint")
+    parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint")
+    parser.add_argument("--credentials", type=Path, help="the agent's credentials file (0600)")
     parser.add_argument("--config", required=True, help="AgentConfig as JSON")
     parser.add_argument("-v", "--verbose", action="count", default=0)
     args = parser.parse_args(argv)
@@ -999,10 +1022,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     try:
         config = AgentConfig.from_json(args.config)
+        credentials = Credentials.read(args.credentials) if args.credentials else None
     except HilswarmError as exc:
         logger.error("%s", exc)
         return 2
-    return run_agent(config, args.connect)
+    endpoints = args.connect or (list(credentials.endpoints) if credentials else [])
+    if not endpoints:
+        logger.error("no bus endpoint: give --connect or --credentials")
+        return 2
+    return run_agent(config, endpoints, credentials.security() if credentials else None)
 
 
 if __name__ == "__main__":

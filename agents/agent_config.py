@@ -56,6 +56,7 @@ class AgentConfig:
         mocap_noise_std_rad: standard deviation of simulated mocap attitude noise [rad].
         lockstep_window: the experiment's lockstep window [ticks]: a lockstep agent never
             runs more than this many ticks past its own last tick, whatever arrives.
+        run_id: the run's id (bus key prefix ``hilswarm/<exp>/<run_id>``; empty: none).
         mocap: the experiment's ``[mocap]`` section as plain data
             (:meth:`~hilswarm.agents.mocap.config.MocapSettings.to_dict`), or ``None``: the
             pose then comes from the link (a ``SimulatedMocap`` of a ``sim://`` plant).
@@ -82,12 +83,15 @@ class AgentConfig:
     mocap_noise_std_m: float = 0.0
     mocap_noise_std_rad: float = 0.0
     lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
+    run_id: str = ""
     mocap: dict[str, Any] | None = None
     mocap_body: str | None = None
     mocap_neighbours: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         bus.check_key_name(self.experiment, what="experiment name")
+        if self.run_id:
+            bus.check_key_name(self.run_id, what="run id")
         bus.check_key_name(self.name, what="agent name")
         if self.name not in self.agent_names:
             raise AgentConfigError(
@@ -142,13 +146,19 @@ class AgentHardware:
     model: Any
 
 
-def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> AgentHardware:
+def build_hardware(
+    config: AgentConfig,
+    *,
+    endpoints: Sequence[str] = (),
+    security: bus.SessionSecurity | None = None,
+) -> AgentHardware:
     """Build the vehicle, open/configure its board and build the controller's ControlModel.
 
     For ``sim://`` and ``simavr://`` links (and ``xbee://...?sim=...``, a simulated robot behind
     the simulated radio) the board drives the vehicle's own simulated hardware
     (``vehicle.simulated_hardware``) and a simulated mocap follows that plant. ``endpoints``
-    are the agent's bus endpoints, through which an ``xbee://`` board reaches the gateway.
+    are the agent's bus endpoints, through which an ``xbee://`` board reaches the gateway
+    (authenticated with ``security``, the agent's credentials).
     """
     vehicle_cls = resolve_vehicle(config.vehicle)
     vehicle = vehicle_cls(
@@ -164,7 +174,7 @@ def build_hardware(config: AgentConfig, *, endpoints: Sequence[str] = ()) -> Age
         calibration.prepare_inverse()
     board = None
     if getattr(vehicle, "needs_board", True):
-        board = _open_board(config, vehicle, endpoints)
+        board = _open_board(config, vehicle, endpoints, security)
     controller = resolve_controller(config.controller)()
     source = getattr(vehicle, "pose_source", None)
     asks = getattr(controller, "uses_neighbour_poses", False) and config.mocap_neighbours
@@ -202,7 +212,12 @@ def mocap_pose_source(config: AgentConfig, vehicle: Any, plant: Any | None) -> A
     return source
 
 
-def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()) -> Any:
+def _open_board(
+    config: AgentConfig,
+    vehicle: Any,
+    endpoints: Sequence[str] = (),
+    security: bus.SessionSecurity | None = None,
+) -> Any:
     if not config.link:
         raise AgentConfigError(
             f"agent {config.name!r}: vehicle {config.vehicle!r} needs a board but the "
@@ -214,6 +229,8 @@ def _open_board(config: AgentConfig, vehicle: Any, endpoints: Sequence[str] = ()
         options = {
             "endpoints": list(endpoints),
             "experiment": config.experiment,
+            "run_id": config.run_id,
+            "security": security,
             "agent": config.name,
         }
     if is_simulated(config.link):

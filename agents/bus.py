@@ -3,11 +3,17 @@
 Shared by agent processes and the orchestrator (this module imports nothing from
 ``hilswarm.orchestrator``).
 
-Key space, one experiment per prefix ``hilswarm/<exp>/``:
+Key space, one run of an experiment per prefix ``hilswarm/<exp>/<run_id>/`` (the run id is
+made fresh by every ``hilswarm run``, so nothing of another run, even of the same experiment,
+is ever consumed):
 
 * ``tick`` — the instance manager's tick messages (:func:`encode_tick`), each releasing the
   ticks up to its ``k`` (:class:`TickMessage`).
-* ``control`` — swarm-wide commands (:class:`ControlCommand`: stop, estop, pause, resume).
+* ``control`` — swarm-wide commands (:class:`ControlCommand`: stop, estop, pause, resume),
+  put by the instance manager only.
+* ``manager/request`` — an operator's command (``hilswarm stop``), same layout as ``control``;
+  the manager forwards it on ``control`` at once.
+* ``manager/status`` — the manager's own state (JSON).
 * ``agent/<name>/y`` — the agent's output y_k (:func:`encode_vector`), with its tick report
   (:func:`encode_report`: timings, u_k, x_hat_k) as attachment, so the manager and its
   recorder get everything of a tick in one message. Neighbours subscribe to this *explicit* key.
@@ -36,10 +42,13 @@ delivered to them. The orchestrator's recorder may use wildcards.
 Per-tick vectors use a fixed little-endian layout (no JSON on the hot path): ``k`` int64,
 ``t`` float64 [s, experiment time], then the values as float64. ``NaN`` is a valid value.
 
-Configurations: the orchestrator opens a *router* session listening on loopback; agents are
-*clients* of it (a peer mesh does not scale past a few dozen processes on two cores, and a peer
-hub does not relay between peers). Multicast scouting and gossip are off in every
-configuration; the link lease is short (1 s) so that a hung process is dropped quickly.
+Configurations: the orchestrator opens a *router* session listening on loopback (a free port
+it binds itself, read back with :func:`bound_endpoints`); agents are *clients* of it (a peer
+mesh does not scale past a few dozen processes on two cores, and a peer hub does not relay
+between peers). :func:`session_config` builds every configuration, in one place: multicast
+scouting and gossip are off; the link lease is short (1 s) so that a hung process is dropped
+quickly; :class:`SessionSecurity` adds Zenoh's user/password authentication, TLS and the
+router's access control (see docs/security.md).
 
 :data:`LEAN_RUNTIME` hands Zenoh's runtime pools over to one application worker thread (the
 ``ZENOH_RUNTIME`` environment variable): a client then runs 4 threads instead of 9. It is safe
@@ -48,11 +57,13 @@ only where no bus callback blocks (one blocked callback would starve the lease k
 
 from __future__ import annotations
 
+import base64
 import enum
 import json
+import logging
 import re
 import struct
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,10 +71,10 @@ import numpy as np
 import zenoh
 from hilswarm.agents.errors import HilswarmError
 
+logger = logging.getLogger(__name__)
+
 #: First chunk of every key.
 KEY_ROOT = "hilswarm"
-#: Default TCP port of the embedded listening session.
-DEFAULT_PORT = 7447
 #: Link lease [ms]: a silent peer is dropped after this long.
 LEASE_MS = 1000
 #: Keep-alive messages sent per lease period.
@@ -93,7 +104,8 @@ _NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
 
 
 class BusConnectionError(HilswarmError, ConnectionError):
-    """The bus session could not be opened (no router at the endpoint, port in use, ...)."""
+    """The bus session could not be opened (no router at the endpoint, refused credentials,
+    port in use, ...)."""
 
 
 class BusMessageError(HilswarmError, ValueError):
@@ -116,20 +128,27 @@ def check_key_name(name: str, *, what: str) -> str:
 
 @dataclass(frozen=True)
 class BusKeys:
-    """The keys of one experiment.
+    """The keys of one run of an experiment.
 
     Args:
         experiment: experiment name (one key chunk).
+        run_id: the run's id (one key chunk; ``hilswarm run`` makes a fresh one per run).
+            Empty: keys without a run id, ``hilswarm/<exp>/...`` (tools and benchmarks).
     """
 
     experiment: str
+    run_id: str = ""
 
     def __post_init__(self) -> None:
         check_key_name(self.experiment, what="experiment name")
+        if self.run_id:
+            check_key_name(self.run_id, what="run id")
 
     @property
     def prefix(self) -> str:
-        """``hilswarm/<exp>``."""
+        """``hilswarm/<exp>/<run_id>`` (``hilswarm/<exp>`` without a run id)."""
+        if self.run_id:
+            return f"{KEY_ROOT}/{self.experiment}/{self.run_id}"
         return f"{KEY_ROOT}/{self.experiment}"
 
     @property
@@ -146,6 +165,11 @@ class BusKeys:
     def manager_status(self) -> str:
         """Key on which the instance manager announces its own state (JSON)."""
         return f"{self.prefix}/manager/status"
+
+    @property
+    def manager_request(self) -> str:
+        """Key of operators' commands to the manager (:func:`encode_control` layout)."""
+        return f"{self.prefix}/manager/request"
 
     def agent(self, name: str, leaf: str) -> str:
         """Key ``hilswarm/<exp>/agent/<name>/<leaf>`` (leaf: y, u, x_hat, status, set)."""
@@ -265,7 +289,7 @@ _VECTOR_HEADER = struct.Struct("<qd")
 _TICK_HEADER = struct.Struct("<qdBH")
 #: Flag bits of a tick message.
 TICK_REALTIME = 0x01
-_REPORT_HEADER = struct.Struct("<dddIHH")
+_REPORT_HEADER = struct.Struct("<ddddHHHH")
 
 
 def encode_vector(k: int, t: float, values: np.ndarray | Sequence[float]) -> bytes:
@@ -355,24 +379,31 @@ class AgentTiming:
 
     Attributes:
         compute_s: controller step [s, wall clock].
-        actuate_s: apply + board exchange (plant advance) [s, wall clock].
+        actuate_s: applying ``u`` on the vehicle (limits, calibration, staging the outputs)
+            [s, wall clock].
         sense_s: sensing y_k [s, wall clock].
         skipped: ticks the agent dropped since its last answer because it fell behind.
+        link_s: the board round trip (request out, board turnaround, reply in; re-sends
+            included) [s, wall clock]; 0 without a board.
+        retries: re-sends of the board request in this tick (links that count them).
     """
 
     compute_s: float = 0.0
     actuate_s: float = 0.0
     sense_s: float = 0.0
     skipped: int = 0
+    link_s: float = 0.0
+    retries: int = 0
 
 
 def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray | None) -> bytes:
     """Encode an agent's tick report, the attachment of its y_k message.
 
-    Layout: timing (compute, actuate, sense [s] as 3 float64; skipped ticks as uint32), the
-    sizes of u and x_hat (2 uint16), then u_k (the input applied over [t_{k-1}, t_k); empty at
-    tick 0 and when not actuating) and x_hat_k (the controller state after computing u_k), as
-    float64. The recorder unpacks it in ``orchestrator/record_stream.py``.
+    Layout: timing (compute, actuate, sense, link [s] as 4 float64; skipped ticks and link
+    retries as 2 uint16, saturating), the sizes of u and x_hat (2 uint16), then u_k (the input
+    applied over [t_{k-1}, t_k); empty at tick 0 and when not actuating) and x_hat_k (the
+    controller state after computing u_k), as float64. The recorder unpacks it in
+    ``orchestrator/record_stream.py``.
     """
     u_bytes = b"" if u is None else np.asarray(u, dtype="<f8").tobytes()
     x_bytes = b"" if x_hat is None else np.asarray(x_hat, dtype="<f8").tobytes()
@@ -381,7 +412,9 @@ def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray |
             timing.compute_s,
             timing.actuate_s,
             timing.sense_s,
-            timing.skipped,
+            timing.link_s,
+            min(timing.skipped, 0xFFFF),
+            min(timing.retries, 0xFFFF),
             len(u_bytes) // 8,
             len(x_bytes) // 8,
         )
@@ -604,14 +637,55 @@ def decode_json(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 
 
-def loopback_endpoint(port: int) -> str:
-    """``tcp/127.0.0.1:<port>``."""
-    if not isinstance(port, int) or not 0 < port < 65536:
-        raise BusKeyError(f"port must be an integer in 1..65535, got {port!r}")
+def loopback_endpoint(port: int = 0) -> str:
+    """``tcp/127.0.0.1:<port>`` (port 0: a listening session binds a free port)."""
+    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port < 65536:
+        raise BusKeyError(f"port must be an integer in 0..65535, got {port!r}")
     return f"tcp/127.0.0.1:{port}"
 
 
-def _base_config(mode: str) -> zenoh.Config:
+@dataclass(frozen=True)
+class SessionSecurity:
+    """What a session proves and what it checks, with Zenoh's own mechanisms.
+
+    Attributes:
+        user: user name this session authenticates with (``transport/auth/usrpwd``).
+        password: its password.
+        user_dictionary: router: path of the ``user:password`` file it accepts (mode 0600).
+        ca_pem: trust this CA (PEM) for ``tls/`` endpoints (the run's own CA).
+        certificate_pem: router: its TLS certificate (PEM, signed by the run's CA).
+        private_key_pem: router: the certificate's private key (PEM).
+        access_control: router: Zenoh's ``access_control`` section (default deny).
+    """
+
+    user: str | None = None
+    password: str | None = None
+    user_dictionary: str | None = None
+    ca_pem: str | None = None
+    certificate_pem: str | None = None
+    private_key_pem: str | None = None
+    access_control: Mapping[str, Any] | None = None
+
+
+def _b64(text: str) -> str:
+    return base64.b64encode(text.encode()).decode()
+
+
+def session_config(
+    mode: str,
+    *,
+    listen: Iterable[str] = (),
+    connect: Iterable[str] = (),
+    security: SessionSecurity | None = None,
+) -> zenoh.Config:
+    """The configuration of every Zenoh session of hilswarm (the one place that builds them).
+
+    Args:
+        mode: ``"router"`` (the orchestrator's embedded router) or ``"client"``.
+        listen: endpoints to listen on (port 0: a free port, see :func:`bound_endpoints`).
+        connect: endpoints to connect to.
+        security: credentials, TLS material and access control; ``None``: none.
+    """
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
     config.insert_json5("scouting/multicast/enabled", "false")
@@ -622,10 +696,35 @@ def _base_config(mode: str) -> zenoh.Config:
         config.insert_json5(
             f"transport/link/tx/queue/size/{priority}", str(TICK_PATH_QUEUE_BATCHES)
         )
+    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if mode == "router":  # lets bound_endpoints() read the ports it bound (local reads only)
+        config.insert_json5("adminspace", '{"enabled": true, "permissions": {"read": true}}')
+    if security is None:
+        return config
+    usrpwd: dict[str, str] = {}
+    if security.user is not None:
+        usrpwd = {"user": security.user, "password": security.password or ""}
+    if security.user_dictionary is not None:
+        usrpwd["dictionary_file"] = security.user_dictionary
+    if usrpwd:
+        config.insert_json5("transport/auth/usrpwd", json.dumps(usrpwd))
+    tls: dict[str, Any] = {}
+    if security.ca_pem:
+        tls["root_ca_certificate_base64"] = _b64(security.ca_pem)
+    if security.certificate_pem and security.private_key_pem:
+        tls["listen_certificate_base64"] = _b64(security.certificate_pem)
+        tls["listen_private_key_base64"] = _b64(security.private_key_pem)
+    if tls:
+        config.insert_json5("transport/link/tls", json.dumps(tls))
+    if security.access_control is not None:
+        config.insert_json5("access_control", json.dumps(dict(security.access_control)))
     return config
 
 
-def listen_config(endpoints: Iterable[str]) -> zenoh.Config:
+def listen_config(
+    endpoints: Iterable[str], *, security: SessionSecurity | None = None
+) -> zenoh.Config:
     """Config of the orchestrator's embedded router session listening on ``endpoints``.
 
     Agents connect to it as clients; it routes between them.
@@ -633,21 +732,36 @@ def listen_config(endpoints: Iterable[str]) -> zenoh.Config:
     listen = list(endpoints)
     if not listen:
         raise BusKeyError("a listening session needs at least one endpoint")
-    config = _base_config("router")
-    config.insert_json5("listen/endpoints", json.dumps(listen))
-    config.insert_json5("connect/endpoints", "[]")
-    return config
+    return session_config("router", listen=listen, security=security)
 
 
-def client_config(endpoints: Iterable[str]) -> zenoh.Config:
+def client_config(
+    endpoints: Iterable[str], *, security: SessionSecurity | None = None
+) -> zenoh.Config:
     """Config of a client session (agent, CLI command, or orchestrator joining a zenohd)."""
     connect = list(endpoints)
     if not connect:
         raise BusKeyError("a client session needs at least one endpoint to connect to")
-    config = _base_config("client")
-    config.insert_json5("connect/endpoints", json.dumps(connect))
-    config.insert_json5("listen/endpoints", "[]")
-    return config
+    return session_config("client", connect=connect, security=security)
+
+
+def bound_endpoints(session: zenoh.Session, timeout_s: float = 2.0) -> list[str]:
+    """The endpoints a router session actually listens on (ports bound for port 0).
+
+    Read from the router's own admin space (``@/<zid>/router``), which
+    :func:`session_config` enables for local reads.
+
+    Raises:
+        BusConnectionError: the router does not report its locators.
+    """
+    try:
+        for reply in session.get(f"@/{session.zid()}/router", timeout=timeout_s):
+            if reply.ok is not None:
+                locators = json.loads(reply.ok.payload.to_bytes()).get("locators", [])
+                return [str(locator) for locator in locators]
+    except (zenoh.ZError, ValueError) as exc:
+        raise BusConnectionError(f"cannot read the bus's listening endpoints: {exc}") from exc
+    raise BusConnectionError("the bus did not report its listening endpoints")
 
 
 def has_subscribers(publisher: zenoh.Publisher) -> bool:
@@ -669,8 +783,28 @@ LEAN_RUNTIME = (
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:
-    """Open a Zenoh session, turning Zenoh's errors into :class:`BusConnectionError`."""
+    """Open a Zenoh session, turning Zenoh's errors into :class:`BusConnectionError`.
+
+    The message says what went wrong in the user's terms; Zenoh's own text goes to the debug
+    log only.
+    """
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
-        raise BusConnectionError(f"cannot open the Zenoh session: {exc}") from exc
+        logger.debug("zenoh.open failed: %s", exc)
+        raise BusConnectionError(_explain_open_error(config, str(exc))) from None
+
+
+def _explain_open_error(config: zenoh.Config, raw: str) -> str:
+    connect = json.loads(config.get_json("connect/endpoints") or "[]")
+    listen = json.loads(config.get_json("listen/endpoints") or "[]")
+    if "Unable to connect" in raw:
+        return (
+            f"cannot join the bus at {', '.join(connect)}: nothing answers there, or it refused "
+            "this session (wrong or missing credentials, untrusted TLS certificate)"
+        )
+    if "in use" in raw.lower():
+        return f"cannot listen on {', '.join(listen)}: address already in use"
+    if "listen" in raw.lower() or "bind" in raw.lower():
+        return f"cannot listen on {', '.join(listen)} (address not available here?)"
+    return "cannot open the bus session (run with -v for Zenoh's message)"

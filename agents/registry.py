@@ -53,7 +53,20 @@ def add_search_path(folder: str | Path) -> None:
         importlib.invalidate_caches()
 
 
-def _resolve(kind: str, table: dict[str, str], name: str) -> Any:
+#: kind -> "module:Class" every class of that kind must subclass.
+BASES: dict[str, str] = {
+    "vehicle": "hilswarm.agents.vehicle:Vehicle",
+    "controller": "hilswarm.agents.control:Controller",
+}
+
+
+def class_path(kind: str, name: str) -> str:
+    """The ``"package.module:Class"`` path a registry name or path stands for.
+
+    Raises:
+        RegistryError: not a string, or neither a registry name nor a ``module:Class`` path.
+    """
+    table = {"vehicle": VEHICLES, "controller": CONTROLLERS, "plant": PLANTS}[kind]
     if not isinstance(name, str) or not name:
         raise RegistryError(f"{kind} name must be a non-empty string, got {name!r}")
     target = table.get(name, name)
@@ -63,28 +76,49 @@ def _resolve(kind: str, table: dict[str, str], name: str) -> Any:
         raise RegistryError(
             f"unknown {kind} {name!r}: expected one of {known} or a 'package.module:Class' path"
         )
+    return target
+
+
+def _resolve(kind: str, name: str) -> Any:
+    module_name, _, attr = class_path(kind, name).partition(":")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
         raise RegistryError(
             f"{kind} {name!r}: cannot import module {module_name!r}: {exc}"
         ) from exc
+    except Exception as exc:  # a user's module failing as it runs: its error, never a traceback
+        raise RegistryError(
+            f"{kind} {name!r}: importing module {module_name!r} failed: {type(exc).__name__}: {exc}"
+        ) from exc
     try:
-        return getattr(module, attr)
+        found = getattr(module, attr)
     except AttributeError:
         raise RegistryError(f"{kind} {name!r}: module {module_name!r} has no {attr!r}") from None
+    if kind in BASES:
+        base_module, _, base_name = BASES[kind].partition(":")
+        base = getattr(importlib.import_module(base_module), base_name)
+        if not (isinstance(found, type) and issubclass(found, base)):
+            what = (
+                f"class {found.__qualname__}" if isinstance(found, type) else type(found).__name__
+            )
+            raise RegistryError(
+                f"{kind} {name!r} is {what}, not a {kind} class: name a class that subclasses "
+                f"{base_module}.{base_name}"
+            )
+    return found
 
 
 def resolve_vehicle(name: str) -> Any:
     """Return the Vehicle class for ``name`` (raises :class:`RegistryError`)."""
-    return _resolve("vehicle", VEHICLES, name)
+    return _resolve("vehicle", name)
 
 
 def resolve_controller(name: str) -> Any:
     """Return the Controller class for ``name`` (raises :class:`RegistryError`)."""
-    return _resolve("controller", CONTROLLERS, name)
+    return _resolve("controller", name)
 
 
 def resolve_plant(name: str) -> Any:
     """Return the plant class for ``name`` (raises :class:`RegistryError`)."""
-    return _resolve("plant", PLANTS, name)
+    return _resolve("plant", name)

@@ -149,6 +149,8 @@ class Vehicle(ABC):
         profile: board profile name (``"uno"``, ``"duemilanove"``, ``"fio"``).
         default_pinout: device -> role -> pin (13, ``"D13"``, ``"A0"``).
         needs_board: False for vehicles without hardware (simulated plants).
+        needs_pose: True for vehicles whose outputs come from motion capture
+            (``pose_source``): on a real board the experiment needs a ``[mocap]`` table.
         default_limits: input name -> ``(lo, hi)`` vehicle-level limits on ``u``.
         default_params: vehicle parameters and their defaults (``params=`` may change them).
 
@@ -179,6 +181,7 @@ class Vehicle(ABC):
     profile: ClassVar[str] = "uno"
     default_pinout: ClassVar[Mapping[str, Mapping[str, int | str]]]
     needs_board: ClassVar[bool] = True
+    needs_pose: ClassVar[bool] = False
     default_limits: ClassVar[Mapping[str, tuple[float, float]]] = {}
     default_params: ClassVar[Mapping[str, Any]] = {}
 

@@ -176,18 +176,18 @@ def numpy_baseline(repeats: int) -> float:
     return statistics.median(best)
 
 
-def zenoh_baseline(n: int, port: int) -> tuple[float, float] | None:
+def zenoh_baseline(n: int) -> tuple[float, float] | None:
     """Bare Zenoh put of a y message with its report, client -> loopback router.
 
     Returns ``(CPU seconds of the calling thread, wall seconds)`` per put, or ``None`` when
-    no loopback session can be opened (e.g. the port is in use).
+    no loopback session can be opened.
     """
     import zenoh  # noqa: PLC0415 - only this baseline needs it directly
 
     keys = bus.BusKeys("bench")
-    endpoint = bus.loopback_endpoint(port)
     try:
-        router = bus.open_session(bus.listen_config([endpoint]))
+        router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+        endpoint = bus.bound_endpoints(router)[0]  # the free port it bound
     except bus.BusConnectionError as exc:
         print(f"(no Zenoh baseline: {exc})", file=sys.stderr)
         return None
@@ -239,7 +239,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cases", nargs="*", default=None, help="frisbee consensus smd")
     parser.add_argument("--profile", metavar="CASE", help="cProfile one case instead")
     parser.add_argument("--no-zenoh", action="store_true", help="skip the Zenoh put baseline")
-    parser.add_argument("--port", type=int, default=17449, help="loopback port (Zenoh baseline)")
     args = parser.parse_args(argv)
     ticks = args.ticks or (3000 if args.short else 20000)
     repeats = 5 if args.short else 9
@@ -252,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     matvec = numpy_baseline(repeats)
-    put = None if args.no_zenoh else zenoh_baseline(2000 if args.short else 20000, args.port)
+    put = None if args.no_zenoh else zenoh_baseline(2000 if args.short else 20000)
     print(f"baselines: numpy K @ y (2x4) {matvec * 1e6:.2f} us CPU", end="")
     if put:
         print(

@@ -177,7 +177,6 @@ def run_bare(
     rate_hz: float,
     seconds: float,
     lockstep: bool,
-    port: int,
     self_clocked: bool = False,
     window: int = 0,
 ) -> BareResult:
@@ -191,8 +190,8 @@ def run_bare(
     if window and not lockstep:
         raise ValueError("window is a lockstep pattern")
     keys = bus.BusKeys("bare")
-    endpoint = bus.loopback_endpoint(port)
-    session = bus.open_session(bus.listen_config([endpoint]))
+    session = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+    endpoint = bus.bound_endpoints(session)[0]  # the free port the router bound
     lock = threading.Lock()
     period = 1.0 / rate_hz
     n_ticks = max(1, round(seconds * rate_hz))
@@ -335,7 +334,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--window", type=int, default=0, help="lockstep: free running within W released ticks"
     )
-    parser.add_argument("--port", type=int, default=17650)
     parser.add_argument(
         "--short", action="store_true", help="CI-sized: each pattern, 8 clients at 50 Hz"
     )
@@ -363,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
         ]  # fmt: skip
         n, rate = args.agents, args.rate
     for options in runs:
-        result = run_bare(n=n, rate_hz=rate, port=args.port, **options)
+        result = run_bare(n=n, rate_hz=rate, **options)
         print(describe(result, self_clocked=bool(options["self_clocked"]),
                        window=int(options["window"])))  # fmt: skip
     return 0

@@ -13,7 +13,10 @@ the real FrameRecorder into a real MCAP file, paired, in one process:
 * ``live, reading client`` — a client subscribed to every channel that reads everything.
 
 Figures: CPU [µs] per recorded message (best of the repeats), the ratio to the baseline, and
-the messages the reading client received. ``uptime`` load is printed beside them.
+the messages the reading client received. Then the ticks themselves, paired: ``hilswarm run
+graphs/lead_follow.toml --mode realtime`` without ``--live``, with it and no client, and with a
+stalled client subscribed to everything: tick completion p50 / p99 [ms] from the run's summary.
+``uptime`` load is printed beside them.
 
     python benchmarks/live_view.py            # 8 and 32 agents
     python benchmarks/live_view.py --short    # < 30 s
@@ -25,6 +28,10 @@ import argparse
 import asyncio
 import json
 import os
+import re
+import socket
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -117,6 +124,52 @@ def measure(n: int, batches: list[bytes], folder: Path, mode: str) -> tuple[floa
     return cpu, recorded, received
 
 
+REPO = Path(__file__).resolve().parent.parent
+_URL = re.compile(r"^(ws://127\.0\.0\.1:\d+)$", re.MULTILINE)
+_COMPLETION = re.compile(r"tick completion p50 ([\d.]+) ms, p99 ([\d.]+) ms")
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def run_ticks(duration_s: float, mode: str, folder: Path) -> tuple[float, float]:
+    """One realtime lead/follow run: tick completion (p50, p99) [ms] from its summary."""
+    args = [sys.executable, "-m", "hilswarm.orchestrator.cli", "run",
+            str(REPO / "graphs" / "lead_follow.toml"), "--mode", "realtime",
+            "--duration", str(duration_s), "--out", str(folder / f"{mode}.mcap"),
+            "--port", str(_free_port())]  # fmt: skip
+    if mode != "none":
+        args.append("--live")
+    output = folder / f"{mode}.out"
+    with output.open("wb") as sink:
+        process = subprocess.Popen(args, stdout=sink, stderr=subprocess.STDOUT)
+        client = None
+        try:
+            if mode == "slow client":
+                deadline = time.monotonic() + 120
+                while not _URL.search(output.read_text()) and time.monotonic() < deadline:
+                    if process.poll() is not None:
+                        break
+                    time.sleep(0.05)
+                match = _URL.search(output.read_text())
+                if match:
+                    client = Client(match.group(1), read=False)
+            process.wait(timeout=duration_s + 180)
+        finally:
+            if client is not None:
+                client.close()
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+    found = _COMPLETION.search(output.read_text())
+    if not found:
+        raise RuntimeError(f"no tick summary in the run's output:\n{output.read_text()}")
+    return float(found.group(1)), float(found.group(2))
+
+
 def best_of(repeats: int, run: Callable[[], tuple[float, int, int]]) -> tuple[float, int, int]:
     """The least disturbed of ``repeats`` runs (smallest CPU)."""
     return min((run() for _ in range(repeats)), key=lambda r: r[0])
@@ -131,7 +184,7 @@ def main() -> None:
     args = parser.parse_args()
     agents = args.agents or ([8] if args.short else [8, 32])
     ticks = 300 if args.short else 1500
-    repeats = args.repeats or (2 if args.short else 3)
+    repeats = args.repeats or (1 if args.short else 3)
     print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} (uptime 1, 5 min)")
     modes = ("none", "no client", "slow client", "reading client")
     for n in agents:
@@ -152,6 +205,13 @@ def main() -> None:
             label = "no live view" if mode == "none" else f"live, {mode}"
             extra = f", client received {received}" if mode == "reading client" else ""
             print(f"  {label:<22} {per:6.2f} µs/message  ({per / base:4.2f}x baseline){extra}")
+    duration = 2.0 if args.short else 20.0
+    print(f"realtime lead/follow, 20 Hz, {duration:g} s per run, tick completion [ms]:")
+    with tempfile.TemporaryDirectory() as tmp:
+        for mode in ("none", "no client", "slow client"):
+            p50, p99 = run_ticks(duration, mode, Path(tmp))
+            label = "no live view" if mode == "none" else f"live, {mode}"
+            print(f"  {label:<22} p50 {p50:7.2f}  p99 {p99:7.2f}")
     print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} (uptime 1, 5 min)")
 
 

@@ -26,7 +26,6 @@ import json
 import os
 import select
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -41,12 +40,6 @@ from hilswarm.agents.mocap.config import MocapSettings
 
 EXPERIMENT = "mocap_latency"
 START_TIMEOUT_S = 30.0
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def start(command: list[str], *, pipe: bool = False) -> subprocess.Popen[bytes]:
@@ -82,8 +75,8 @@ def stop(process: subprocess.Popen[bytes]) -> None:
 
 def measure(rate_hz: float, n_bodies: int, seconds: float) -> dict[str, Any]:
     """One run at ``rate_hz``: latencies [s] end to end and at the client library."""
-    endpoints = [bus.loopback_endpoint(free_port())]
-    router = bus.open_session(bus.listen_config(endpoints))
+    router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+    endpoints = bus.bound_endpoints(router)  # the free port the router bound
     bodies = [f"b{i:02d}" for i in range(n_bodies)]
     settings = MocapSettings(system="sim", rate_hz=rate_hz, hold_frames=10)
     common = ["--experiment", EXPERIMENT, "--bodies", ",".join(bodies), "--connect",

@@ -54,6 +54,7 @@ from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
 from hilswarm.orchestrator.manager import InstanceManager
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.run_security import RunSecurity
 from hilswarm.orchestrator.run_summary import RunSummary
 
 
@@ -220,9 +221,20 @@ def _process_cpu_s(pid: int) -> float:
 
 
 def run_once(
-    *, n: int, rate_hz: float, mode: str, seconds: float, port: int, record: str, vehicle: str
+    *,
+    n: int,
+    rate_hz: float,
+    mode: str,
+    seconds: float,
+    record: str,
+    vehicle: str,
+    secure: bool = False,
 ) -> Result:
-    """Run one configuration like ``hilswarm run`` does (agents, manager, recorder process)."""
+    """Run one configuration like ``hilswarm run`` does (agents, manager, recorder process).
+
+    ``secure``: with the run's authentication and access control, as ``hilswarm run`` has by
+    default (off: as ``hilswarm run --insecure``).
+    """
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         experiment = load_experiment(
@@ -230,20 +242,34 @@ def run_once(
                 folder, n=n, rate_hz=rate_hz, mode=mode, seconds=seconds, vehicle=vehicle
             )
         )
-        endpoints = [bus.loopback_endpoint(port)]
+        listen = [bus.loopback_endpoint(0)]
+        security = None
+        if secure:
+            security = RunSecurity.for_experiment(experiment, "bench", folder, listen=listen)
         sink: RecorderProcess | Recorder | None = None
         if record == "process":
             sink = RecorderProcess(folder / "run.mcap", experiment, log_time_ns=time.time_ns())
         elif record == "inline":
             sink = Recorder(folder / "run.mcap", experiment, log_time_ns=time.time_ns())
-        manager = InstanceManager(experiment, recorder=sink, listen=endpoints)
+        manager = InstanceManager(
+            experiment,
+            recorder=sink,
+            listen=listen,
+            run_id="bench",
+            security=security.router() if security else None,
+        )
         recorder_cpu = 0.0
         try:
             manager.open()
-            with AgentLauncher(endpoints) as launcher:
+            endpoints = manager.endpoints
+            credentials = security.write_credentials(endpoints) if security else None
+            with AgentLauncher(endpoints, credentials=credentials) as launcher:
                 started = time.perf_counter()
                 launcher.start_all(
-                    [agent_config_for(experiment, name) for name in experiment.agent_names]
+                    [
+                        agent_config_for(experiment, name, run_id="bench")
+                        for name in experiment.agent_names
+                    ]
                 )
                 manager.wait_for_agents(300, check=launcher.check)
                 startup = time.perf_counter() - started
@@ -397,7 +423,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-baseline", action="store_true", help="skip the bare-bus baseline runs"
     )
-    parser.add_argument("--port", type=int, default=17700)
     args = parser.parse_args(argv)
     os.environ["ZENOH_RUNTIME"] = bus.LEAN_RUNTIME if args.zenoh_runtime == "lean" else "()"
     lockstep_seconds = 30.0
@@ -421,25 +446,20 @@ def main(argv: list[str] | None = None) -> int:
     print(HEADER, flush=True)
     results: list[Result] = []
     baselines: dict[tuple[str, int, float], BareResult] = {}
-    port = args.port
     for vehicle in fleets:
         configs = [("realtime", n, rate, args.seconds) for n, rate in realtime]
         if not args.no_lockstep:
             configs.append(("lockstep", 8, 100.0, lockstep_seconds))
         for mode, n, rate, seconds in configs:
             if not args.no_baseline and (mode, n, rate) not in baselines:
-                bare = run_bare(
-                    n=n, rate_hz=rate, seconds=seconds, lockstep=mode == "lockstep", port=port
-                )
+                bare = run_bare(n=n, rate_hz=rate, seconds=seconds, lockstep=mode == "lockstep")
                 baselines[(mode, n, rate)] = bare
-                port += 1
                 print(baseline_row(bare), flush=True)
                 print(bare_json(bare, os.getloadavg()[0]), flush=True)
             result = run_once(
-                n=n, rate_hz=rate, mode=mode, seconds=seconds, port=port, record=args.record,
+                n=n, rate_hz=rate, mode=mode, seconds=seconds, record=args.record,
                 vehicle=vehicle,
             )  # fmt: skip
-            port += 1
             results.append(result)
             print(result.row(), flush=True)
             print(result_json(result), flush=True)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import statistics
 import threading
 import time
@@ -83,12 +82,6 @@ def bench_codec(n: int) -> None:
         f"codec: ours {ours:.1f} us/frame pair, digi-xbee {digi:.1f} us/frame pair "
         f"(digi-xbee / ours = {digi / ours:.1f}x); {load()}"
     )
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def bench_bus_hop(endpoint: str, n: int) -> None:
@@ -254,8 +247,8 @@ def main() -> None:
     ticks = args.ticks or (20 if args.short else 200)
     print(load())
     bench_codec(2000 if args.short else 20000)
-    endpoint = bus.loopback_endpoint(_free_port())
-    router = bus.open_session(bus.listen_config([endpoint]))
+    router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+    endpoint = bus.bound_endpoints(router)[0]  # the free port the router bound
     try:
         bench_bus_hop(endpoint, 100 if args.short else 1000)
         for rate in (20.0,) if args.short else (20.0, 50.0):

@@ -23,8 +23,9 @@ consensus gain that the Euler step makes unstable).
 
 from __future__ import annotations
 
+import json
 import logging
-from collections.abc import Mapping
+from collections.abc import Container, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,18 +44,28 @@ from hilswarm.agents.link.url import is_simulated, link_scheme
 from hilswarm.agents.registry import (
     RegistryError,
     add_search_path,
+    class_path,
     resolve_controller,
     resolve_vehicle,
 )
-from hilswarm.orchestrator.experiment import AgentSpec, Experiment, parse_experiment
+from hilswarm.orchestrator.class_inspect import static_class_problem
+from hilswarm.orchestrator.experiment import (
+    DEFAULT_MAX_AGENTS,
+    AgentSpec,
+    Experiment,
+    ExperimentParts,
+    load_parts,
+)
 from hilswarm.orchestrator.graph_facts import GraphFacts, graph_facts
 from hilswarm.orchestrator.problems import ExperimentError, Problem
+from hilswarm.orchestrator.schema import ExperimentSection
 from hilswarm.orchestrator.xbee_check import check_gateway
 
 logger = logging.getLogger(__name__)
 
-#: Link kinds that one process at a time can own (so two agents cannot share them).
-EXCLUSIVE_LINK_KINDS = ("serial", "xbee")
+#: Link kinds that one process at a time can own (so two agents cannot share them); XBee
+#: addresses are compared by xbee_check (parsed, so two spellings of one address clash).
+EXCLUSIVE_LINK_KINDS = ("serial",)
 #: Runs longer than this many ticks are reported as a warning (recording size, run time).
 MANY_TICKS = 5_000_000
 
@@ -89,65 +100,76 @@ class CheckReport:
         return self.experiment
 
 
-def check_file(path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> CheckReport:
-    """Load ``path`` (with ``overrides``, as :func:`load_experiment`) and run every check."""
-    experiment, problems = parse_experiment(path, overrides=overrides)
-    report = CheckReport(Path(path), experiment, list(problems))
-    if experiment is not None:
-        check_experiment(experiment, report)
+def check_file(
+    path: str | Path,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
+) -> CheckReport:
+    """Load ``path`` (with ``overrides``, as :func:`load_experiment`) and run every check.
+
+    The agents whose own tables are valid are checked even when another part of the file is
+    broken, so every problem shows in one pass.
+    """
+    parts = load_parts(path, overrides=overrides, max_agents=max_agents, remote=remote)
+    report = CheckReport(Path(path), parts.experiment, list(parts.problems))
+    check_parts(parts, report)
     return report
 
 
-def check_experiment(experiment: Experiment, report: CheckReport | None = None) -> CheckReport:
-    """Run the deep checks on a loaded experiment, adding to ``report`` (or a new one)."""
-    report = report or CheckReport(experiment.path, experiment)
-    report.experiment = experiment
-    add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
-    report.facts = graph_facts(experiment.agent_names, experiment.adjacency)
-    _check_settings(experiment, report)
-    _check_graph(experiment, report.facts, report)
-    _check_shared_links(experiment, report)
-    _check_mocap_bodies(experiment, report)
-    built = {spec.name: _AgentCheck(experiment, spec, report) for spec in experiment.agents}
+def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
+    """The deep checks of everything in ``parts`` that loaded (see :func:`check_file`)."""
+    add_search_path(parts.path.parent)  # user "module:Class" names beside the file
+    if parts.graph is not None:
+        names, adjacency, _ = parts.graph
+        report.facts = graph_facts(names, adjacency)
+        _check_graph(parts.path, report.facts, report)
+    if parts.settings is not None:
+        _check_settings(parts.path, parts.settings, report)
+    _check_shared_links(parts, report)
+    _check_mocap_bodies(parts, report)
+    shared: dict[tuple[str, str], _Outcome] = {}
+    built = {name: _AgentCheck(parts, spec, report, shared) for name, spec in parts.agents.items()}
     for check in built.values():
         check.build()
     output_sizes = {name: check.n_outputs for name, check in built.items()}
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
     vehicles = {name: check.vehicle for name, check in built.items()}
-    check_gateway(experiment, vehicles, report.problems, report.warnings)
-    return report
+    check_gateway(parts, vehicles, report.problems, report.warnings)
 
 
 # -- experiment-wide checks ---------------------------------------------------------------------
 
 
-def _check_settings(experiment: Experiment, report: CheckReport) -> None:
-    path = experiment.path
-    if experiment.watchdog_s is not None and experiment.watchdog_s <= experiment.dt:
+def _check_settings(path: Path, settings: ExperimentSection, report: CheckReport) -> None:
+    dt = 1.0 / settings.rate_hz
+    if settings.watchdog_s is not None and settings.watchdog_s <= dt:
         report.problems.append(
             Problem(
                 path,
                 "experiment.watchdog_s",
-                f"{experiment.watchdog_s:g} s is not longer than the control period "
-                f"{experiment.dt:g} s ({experiment.rate_hz:g} Hz): every board would go to safe "
+                f"{settings.watchdog_s:g} s is not longer than the control period "
+                f"{dt:g} s ({settings.rate_hz:g} Hz): every board would go to safe "
                 "mode between two ticks; make it a few periods long",
             )
         )
-    if experiment.n_ticks > MANY_TICKS:
+    n_ticks = max(1, round(settings.duration_s * settings.rate_hz))
+    if n_ticks > MANY_TICKS:
         report.warnings.append(
             Problem(
                 path,
                 "experiment.duration_s",
-                f"{experiment.n_ticks} ticks ({experiment.duration_s:g} s at "
-                f"{experiment.rate_hz:g} Hz) make a very large recording",
+                f"{n_ticks} ticks ({settings.duration_s:g} s at "
+                f"{settings.rate_hz:g} Hz) make a very large recording",
             )
         )
 
 
-def _check_mocap_bodies(experiment: Experiment, report: CheckReport) -> None:
+def _check_mocap_bodies(parts: ExperimentParts, report: CheckReport) -> None:
     """A real mocap system must see every agent's body now (``sim``: the agents bring them)."""
-    mocap = experiment.mocap
+    mocap = parts.mocap
     if mocap is None or mocap.system == "sim":
         return
     from hilswarm.agents.mocap.probe import probe  # noqa: PLC0415 - only with a real system
@@ -155,15 +177,15 @@ def _check_mocap_bodies(experiment: Experiment, report: CheckReport) -> None:
     try:
         seen = probe(mocap, duration_s=min(1.0, 20.0 / mocap.rate_hz + 0.2))
     except HilswarmError as exc:
-        report.problems.append(Problem(experiment.path, "mocap.host", str(exc)))
+        report.problems.append(Problem(parts.path, "mocap.host", str(exc)))
         return
     visible = seen.visible()
-    for spec in experiment.agents:
+    for spec in parts.agents.values():
         if spec.body not in visible:
             key = f"agents.{spec.name}.mocap_body"
             report.problems.append(
                 Problem(
-                    experiment.path,
+                    parts.path,
                     key,
                     f"body {spec.body!r} is not visible to {mocap.system} at {mocap.host}; "
                     f"it sees: {', '.join(visible) or 'no bodies'}",
@@ -171,8 +193,7 @@ def _check_mocap_bodies(experiment: Experiment, report: CheckReport) -> None:
             )
 
 
-def _check_graph(experiment: Experiment, facts: GraphFacts, report: CheckReport) -> None:
-    path = experiment.path
+def _check_graph(path: Path, facts: GraphFacts, report: CheckReport) -> None:
     if len(facts.names) > 1 and not facts.weakly_connected:
         groups = "; ".join(", ".join(component) for component in facts.components)
         report.warnings.append(
@@ -185,9 +206,9 @@ def _check_graph(experiment: Experiment, facts: GraphFacts, report: CheckReport)
             )
 
 
-def _check_shared_links(experiment: Experiment, report: CheckReport) -> None:
+def _check_shared_links(parts: ExperimentParts, report: CheckReport) -> None:
     owners: dict[str, str] = {}
-    for spec in experiment.agents:
+    for spec in parts.agents.values():
         if spec.link is None:
             continue
         try:
@@ -200,7 +221,7 @@ def _check_shared_links(experiment: Experiment, report: CheckReport) -> None:
         if key in owners:
             report.problems.append(
                 Problem(
-                    experiment.path,
+                    parts.path,
                     f"agents.{spec.name}.link",
                     f"{key!r} is already the link of agent {owners[key]!r}; a serial port or "
                     "XBee address belongs to one agent",
@@ -213,11 +234,35 @@ def _check_shared_links(experiment: Experiment, report: CheckReport) -> None:
 # -- per-agent checks --------------------------------------------------------------------------
 
 
-class _AgentCheck:
-    """Checks of one agent; :meth:`build` first, then :meth:`check_controller`."""
+@dataclass
+class _Outcome:
+    """What one shared check found: its value, and its problems/warnings by agent sub-key."""
 
-    def __init__(self, experiment: Experiment, spec: AgentSpec, report: CheckReport) -> None:
-        self.experiment = experiment
+    agent: str
+    value: Any
+    findings: list[tuple[bool, str, str]]  # (is a warning, sub-key, message)
+
+
+class _AgentCheck:
+    """Checks of one agent; :meth:`build` first, then :meth:`check_controller`.
+
+    Agents whose settings are the same (a swarm of identical robots) share the expensive
+    checks (building the vehicle, validating parameters, the dry controller step): each is done
+    once per distinct setting and its findings are repeated under every such agent's key, so
+    ``check`` stays fast for thousands of agents. The initial state shares by its length (its
+    values are checked for every agent by the schema).
+    """
+
+    def __init__(
+        self,
+        parts: ExperimentParts,
+        spec: AgentSpec,
+        report: CheckReport,
+        shared: dict[tuple[str, str], _Outcome],
+    ) -> None:
+        self.shared = shared
+        self.parts = parts
+        self.dt = parts.dt
         self.spec = spec
         self.report = report
         self.key = f"agents.{spec.name}"
@@ -226,26 +271,60 @@ class _AgentCheck:
         self.n_outputs: int | None = None
 
     def problem(self, key: str, message: str) -> None:
-        self.report.problems.append(Problem(self.experiment.path, f"{self.key}.{key}", message))
+        self.report.problems.append(Problem(self.parts.path, f"{self.key}.{key}", message))
 
     def warning(self, key: str, message: str) -> None:
-        self.report.warnings.append(Problem(self.experiment.path, f"{self.key}.{key}", message))
+        self.report.warnings.append(Problem(self.parts.path, f"{self.key}.{key}", message))
+
+    def once(self, kind: str, setting: Any, check: Any) -> Any:
+        """``check()`` once per distinct ``setting`` of ``kind``; later agents with the same
+        setting get its value and its findings under their own key."""
+        key = (kind, json.dumps(setting, sort_keys=True, default=str))
+        outcome = self.shared.get(key)
+        if outcome is None:
+            problems, warnings = len(self.report.problems), len(self.report.warnings)
+            value = check()
+            start = len(self.key) + 1
+            findings = [(False, p.key[start:], p.message) for p in self.report.problems[problems:]]
+            findings += [(True, p.key[start:], p.message) for p in self.report.warnings[warnings:]]
+            self.shared[key] = _Outcome(self.spec.name, value, findings)
+            return value
+        for is_warning, sub_key, found in outcome.findings:
+            message = found.replace(repr(outcome.agent), repr(self.spec.name))
+            (self.warning if is_warning else self.problem)(sub_key, message)
+        return outcome.value
 
     # -- vehicle, link, calibration -----------------------------------------------------------
 
     def build(self) -> None:
         spec = self.spec
-        try:
-            vehicle_cls = resolve_vehicle(spec.vehicle)
-        except RegistryError as exc:
-            self.problem("vehicle", str(exc))
-            vehicle_cls = None
+        vehicle_cls = self.once(
+            "vehicle class",
+            spec.vehicle,
+            lambda: _resolve_class(self, "vehicle", spec.vehicle, resolve_vehicle),
+        )
         link_kind = self._check_link(vehicle_cls)
-        self._check_pose(vehicle_cls, link_kind)
-        calibration = self._load_calibration()
-        if vehicle_cls is None or calibration is _FAILED:
+        if vehicle_cls is None or self.dt is None:
             return
-        kwargs: dict[str, Any] = {"name": spec.name, "dt": self.experiment.dt}
+        setting = [
+            spec.vehicle,
+            spec.link,
+            spec.pinout,
+            spec.vehicle_params,
+            len(spec.initial_state),
+            spec.calibration,
+        ]
+        self.vehicle, self.n_inputs, self.n_outputs = self.once(
+            "vehicle", setting, lambda: self._build_vehicle(vehicle_cls, link_kind)
+        )
+
+    def _build_vehicle(self, vehicle_cls: Any, link_kind: str | None) -> tuple[Any, Any, Any]:
+        """Build the vehicle without a board; ``(vehicle, n_inputs, n_outputs)`` or Nones."""
+        spec = self.spec
+        calibration = self._load_calibration()
+        if calibration is _FAILED:
+            return None, None, None
+        kwargs: dict[str, Any] = {"name": spec.name, "dt": self.dt}
         if spec.pinout:
             kwargs["pinout"] = spec.pinout
         if spec.vehicle_params:
@@ -255,28 +334,29 @@ class _AgentCheck:
         if calibration is not None:
             kwargs["calibration"] = calibration
         try:
-            self.vehicle = vehicle_cls(**kwargs)
+            vehicle = vehicle_cls(**kwargs)
         except VehicleDefinitionError as exc:
             self.problem("vehicle", f"vehicle {spec.vehicle!r} is defined badly: {exc}")
-            return
+            return None, None, None
         except (HilswarmError, ValueError, TypeError) as exc:
             self.problem(_vehicle_error_key(exc), str(exc))
-            return
+            return None, None, None
         except NotImplementedError as exc:  # an unfinished `hilswarm new` skeleton
             self.problem("vehicle", f"vehicle {spec.vehicle!r} is not finished: {exc}")
-            return
+            return None, None, None
         except Exception as exc:  # user code: report it with the agent's key, never a traceback
             self.problem(
                 "vehicle",
                 f"constructing vehicle {spec.vehicle!r} failed: {type(exc).__name__}: {exc}",
             )
-            return
+            return None, None, None
+        self._check_initial_state(vehicle, link_kind)
         # Sizes may be per instance (a simulated vehicle takes them from its plant).
-        n_inputs = getattr(self.vehicle, "n_inputs", None)
-        n_outputs = getattr(self.vehicle, "n_outputs", None)
+        n_inputs = getattr(vehicle, "n_inputs", None)
+        n_outputs = getattr(vehicle, "n_outputs", None)
         if isinstance(n_inputs, int) and isinstance(n_outputs, int):
-            self.n_inputs, self.n_outputs = n_inputs, n_outputs
-        self._check_initial_state(link_kind)
+            return vehicle, n_inputs, n_outputs
+        return vehicle, None, None
 
     def _check_link(self, vehicle_cls: Any) -> str | None:
         spec = self.spec
@@ -298,22 +378,17 @@ class _AgentCheck:
                 "link",
                 f"vehicle {spec.vehicle!r} needs no board; link {spec.link!r} is not used",
             )
-        return kind
-
-    def _check_pose(self, vehicle_cls: Any, link_kind: str | None) -> None:
-        """A vehicle whose outputs come from motion capture needs a pose from somewhere."""
-        if vehicle_cls is None or not getattr(vehicle_cls, "needs_pose", False):
-            return
-        simulated = link_kind in ("sim", "simavr") or (
-            link_kind == "xbee" and self.spec.link is not None and is_simulated(self.spec.link)
-        )
-        if self.experiment.mocap is None and not simulated:
+        needs_pose = vehicle_cls is not None and getattr(vehicle_cls, "needs_pose", False)
+        if needs_pose and not is_simulated(spec.link) and self.parts.mocap is None:
             self.problem(
                 "link",
-                f"agent {self.spec.name!r}: vehicle {self.spec.vehicle!r} needs its pose from "
-                f"motion capture, link {self.spec.link!r} gives none and the experiment has no "
-                '[mocap] section; add one (e.g. [mocap] system = "vicon", host = "...")',
+                f"agent {spec.name!r}: vehicle {spec.vehicle!r} needs a pose from motion "
+                f"capture, but link {spec.link!r} gives none (only simulated boards, sim://, "
+                "simavr://, xbee://...?sim=, simulate one) and the experiment has no [mocap] "
+                'table; add [mocap] with system = "vicon", "optitrack", "qualisys", "vrpn" '
+                'or "sim"',
             )
+        return kind
 
     def _load_calibration(self) -> Any:
         path = self.spec.calibration
@@ -333,10 +408,9 @@ class _AgentCheck:
             self.problem("calibration", f"cannot load {path.name}: {exc}")
             return _FAILED
 
-    def _check_initial_state(self, link_kind: str | None) -> None:
+    def _check_initial_state(self, vehicle: Any, link_kind: str | None) -> None:
         """Compare the initial state with the plant's state size when it can be known."""
         spec = self.spec
-        vehicle = self.vehicle
         plant = getattr(vehicle, "plant", None)
         n_states = getattr(plant, "n_states", None)
         if isinstance(n_states, int) and spec.initial_state and len(spec.initial_state) != n_states:
@@ -348,47 +422,71 @@ class _AgentCheck:
             return
         if link_kind == "sim" and spec.initial_state:
             try:
-                vehicle.simulated_hardware(initial_state=spec.initial_state, dt=self.experiment.dt)
+                vehicle.simulated_hardware(initial_state=spec.initial_state, dt=self.dt)
             except (HilswarmError, ValueError, TypeError) as exc:
                 self.problem("initial_state", f"the simulated hardware rejects it: {exc}")
 
     # -- controller ---------------------------------------------------------------------------
 
-    def check_controller(self, output_sizes: Mapping[str, int | None], facts: GraphFacts) -> None:
+    def check_controller(
+        self, output_sizes: Mapping[str, int | None], facts: GraphFacts | None
+    ) -> None:
         spec = self.spec
-        try:
-            controller_cls = resolve_controller(spec.controller)
-        except RegistryError as exc:
-            self.problem("controller", str(exc))
+        built = self.once("controller", [spec.controller, spec.params], self._build_controller)
+        if built is None:
             return
+        controller, params = built
+        neighbours = self.parts.neighbours(spec.name)
+        if neighbours is None or self.dt is None:
+            return  # the graph or [experiment] is broken (reported): nothing more to compare
+        self._check_leader(params, neighbours)
+        if facts is not None:
+            self._check_consensus_gain(controller, params, facts, neighbours)
+        if self.n_inputs is None:
+            return
+        mentioned = json.dumps(spec.params, default=str)
+        setting = [
+            spec.controller,
+            spec.params,
+            self.n_inputs,
+            self.n_outputs,
+            [(n if n in mentioned else "", output_sizes.get(n)) for n in neighbours],
+        ]
+        self.once(
+            "dry step",
+            setting,
+            lambda: self._dry_step(controller, params, neighbours, output_sizes),
+        )
+
+    def _build_controller(self) -> tuple[Any, dict[str, Any]] | None:
+        """The controller and its validated parameters, or ``None`` (problems reported)."""
+        spec = self.spec
+        controller_cls = _resolve_class(self, "controller", spec.controller, resolve_controller)
+        if controller_cls is None:
+            return None
         try:
             controller = controller_cls()
         except (HilswarmError, ValueError, TypeError) as exc:
             self.problem("controller", f"cannot build controller {spec.controller!r}: {exc}")
-            return
+            return None
         try:
             params = controller.validate_params(dict(spec.params))
         except (ControllerError, ValueError, TypeError) as exc:
             self.problem("params", str(exc))
-            return
-        neighbours = self.experiment.neighbours(spec.name)
-        self._check_leader(params, neighbours)
-        self._check_consensus_gain(controller, params, facts)
-        if self.n_inputs is None:
-            return
-        self._dry_step(controller, params, neighbours, output_sizes)
+            return None
+        return controller, params
 
     def _check_leader(self, params: Mapping[str, Any], neighbours: tuple[str, ...]) -> None:
         leader = params.get("leader")
         if not isinstance(leader, str):
             return
-        names = self.experiment.agent_names
+        names = self.parts.agent_names or ()
         if leader not in names:
             self.problem("params.leader", f"no agent named {leader!r}; agents: {', '.join(names)}")
         elif leader == self.spec.name:
             self.problem("params.leader", "an agent cannot follow itself")
         elif leader not in neighbours:
-            i, j = self.experiment.index(self.spec.name), self.experiment.index(leader)
+            i, j = names.index(self.spec.name), names.index(leader)  # only on this error
             self.problem(
                 "params.leader",
                 f"{self.spec.name!r} does not hear its leader {leader!r} through the graph: "
@@ -397,19 +495,24 @@ class _AgentCheck:
             )
 
     def _check_consensus_gain(
-        self, controller: Any, params: Mapping[str, Any], facts: GraphFacts
+        self,
+        controller: Any,
+        params: Mapping[str, Any],
+        facts: GraphFacts,
+        neighbours: tuple[str, ...],
     ) -> None:
         from hilswarm.agents.controllers.consensus import LinearConsensus  # noqa: PLC0415
 
         if not isinstance(controller, LinearConsensus):
             return
         weights = params["weights"]
-        degree = sum(weights.get(name, 1.0) for name in self.experiment.neighbours(self.spec.name))
-        product = params["gain"] * self.experiment.dt * degree
+        dt = self.dt or 0.0
+        degree = sum(weights.get(name, 1.0) for name in neighbours)
+        product = params["gain"] * dt * degree
         if product >= 1.0:
             self.warning(
                 "params.gain",
-                f"gain * dt * in-degree = {params['gain']:g} * {self.experiment.dt:g} * "
+                f"gain * dt * in-degree = {params['gain']:g} * {dt:g} * "
                 f"{degree:g} = {product:g} >= 1: the Euler-stepped consensus may oscillate or "
                 "diverge; lower the gain or raise rate_hz",
             )
@@ -436,7 +539,7 @@ class _AgentCheck:
         try:
             model = ControlModel(
                 controller,
-                dt=self.experiment.dt,
+                dt=self.dt,
                 n_inputs=self.n_inputs or 0,
                 n_outputs=self.n_outputs,
                 params=params,
@@ -462,6 +565,22 @@ def _vehicle_error_key(exc: BaseException) -> str:
         if key in text:
             return "vehicle" if key == "limits" else key
     return "vehicle_params"
+
+
+def _resolve_class(check: _AgentCheck, kind: str, name: str, resolve: Any) -> Any:
+    """The class ``name`` names, or ``None`` with a problem at the agent's ``kind`` key.
+
+    A module outside hilswarm is first inspected without running it (:mod:`.class_inspect`);
+    the registry then imports it and checks that the class subclasses Vehicle / Controller.
+    """
+    try:
+        problem = static_class_problem(kind, name, class_path(kind, name))
+        if problem is None:
+            return resolve(name)
+    except RegistryError as exc:
+        problem = str(exc)
+    check.problem(kind, problem)
+    return None
 
 
 #: Marker: the calibration could not be loaded (a problem was reported).

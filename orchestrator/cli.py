@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "graph": ("graph", "show graph facts (connectivity, degrees, algebraic connectivity)"),
     "set": ("set", "change controller parameters of a running agent"),
     "stop": ("stop", "bring every agent of a running experiment to safe mode and stop"),
+    "ps": ("ps", "list running experiments (name, run id, endpoint, pid, mode, tick, agents)"),
     "plot": ("plot", "write PNG plots of a recording"),
     "recover": ("recover", "rewrite an MCAP file whose writer was killed"),
     "replay": (

@@ -1,6 +1,7 @@
 """Experiment files: load and validate the TOML file that describes one swarm run.
 
-The format is documented in ``docs/experiments.md``. In short::
+The format is documented in ``docs/experiments.md`` and declared, key by key, in
+:mod:`hilswarm.orchestrator.schema` (pydantic models, published as a JSON Schema). In short::
 
     [experiment]
     name = "lead_follow"        # [A-Za-z0-9_-]+, used in bus keys hilswarm/<name>/...
@@ -21,95 +22,75 @@ The format is documented in ``docs/experiments.md``. In short::
     controller = "waypoint"
     params = { ... }
 
-:func:`load_experiment` reads and checks the *structure* of the file (types, names, ranges,
-the adjacency matrix) and reports every problem at once in one :class:`ExperimentError`; the
-deeper checks that import vehicle and controller classes live in
-:mod:`hilswarm.orchestrator.checks`.
+:func:`load_experiment` validates every table against the schema, then the rules that span
+tables (graph names vs agent tables, the tick count, the agent count, graph files inside the
+experiment's folder, link URLs), and reports every problem at once in one
+:class:`ExperimentError`; a broken table never hides the problems of the others
+(:func:`load_parts` returns whatever could be loaded, for the deeper checks). The checks that
+need the vehicle and controller classes live in :mod:`hilswarm.orchestrator.checks`.
 """
 
 from __future__ import annotations
 
-import math
 import re
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Container, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from hilswarm.agents.mocap.config import MocapSettings, parse_mocap
+from hilswarm.agents.errors import LinkUrlError
+from hilswarm.agents.link.url import validate_link_url
 from hilswarm.orchestrator.graph_io import read_graph_file, validate_matrix
-from hilswarm.orchestrator.problems import ExperimentError, Problem
+from hilswarm.orchestrator.problems import ExperimentError, Problem, key_path, schema_problems
+from hilswarm.orchestrator.schema import (
+    DEFAULT_LOCKSTEP_WINDOW,
+    DEFAULT_MAX_LATE_FRACTION,
+    NAME_REGEX,
+    AgentTable,
+    ExperimentFile,
+    ExperimentSection,
+    GatewaySection,
+    GraphSection,
+    MocapSection,
+)
+from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
 __all__ = [
-    "AGENT_KEYS",
+    "DEFAULT_MAX_AGENTS",
+    "MAX_TICKS",
     "NAME_PATTERN",
     "OVERRIDE_KEYS",
     "AgentSpec",
     "Experiment",
     "ExperimentError",
+    "ExperimentParts",
     "Problem",
     "load_experiment",
+    "load_parts",
+    "mocap_settings",
     "parse_experiment",
     "parse_link_overrides",
 ]
 
 #: Experiment and agent names: they become parts of bus keys and MCAP topics.
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
-MODES: tuple[str, ...] = ("lockstep", "realtime")
-AGENT_LOSS_POLICIES: tuple[str, ...] = ("stop", "continue")
-#: What the run does when an agent's vehicle enters safe mode (low battery, fault).
-AGENT_SAFE_POLICIES: tuple[str, ...] = ("continue", "stop")
-#: Highest control rate accepted [Hz]; above it no board link or bus keeps up.
-MAX_RATE_HZ = 1000.0
-#: Lockstep: how many ticks an agent may run ahead of the slowest one (1: a strict barrier).
-DEFAULT_LOCKSTEP_WINDOW = 8
-#: Largest accepted lockstep window [ticks].
-MAX_LOCKSTEP_WINDOW = 1024
-
-EXPERIMENT_KEYS: tuple[str, ...] = (
-    "name",
-    "rate_hz",
-    "duration_s",
-    "mode",
-    "on_agent_loss",
-    "on_agent_safe",
-    "watchdog_s",
-    "seed",
-    "lockstep_window",
-)
-GRAPH_KEYS: tuple[str, ...] = ("agents", "adjacency", "file", "undirected")
-AGENT_KEYS: tuple[str, ...] = (
-    "vehicle",
-    "link",
-    "controller",
-    "params",
-    "vehicle_params",
-    "pinout",
-    "initial_state",
-    "calibration",
-    "mocap_body",
-)
-TOP_LEVEL_KEYS: tuple[str, ...] = (
-    "experiment",
-    "graph",
-    "defaults",
-    "agents",
-    "gateway",
-    "mocap",
-)
-#: Keys :func:`load_experiment` accepts in ``overrides``.
+NAME_PATTERN = re.compile(NAME_REGEX)
+#: Keys :func:`load_experiment` accepts in ``overrides``: every [experiment] key but the name,
+#: and ``links`` (agent name -> link URL).
 OVERRIDE_KEYS: tuple[str, ...] = (
-    "mode",
-    "duration_s",
-    "rate_hz",
-    "on_agent_loss",
-    "on_agent_safe",
-    "watchdog_s",
-    "seed",
+    *(key for key in ExperimentSection.model_fields if key != "name"),
     "links",
 )
+#: More agents than this need an explicit ``max_agents`` (``--max-agents N``): one OS process
+#: per agent, so a typo in a generated graph must not start thousands of processes.
+DEFAULT_MAX_AGENTS = 256
+#: Most ticks a run may have (duration_s * rate_hz).
+MAX_TICKS = 20_000_000
+#: Memory the orchestrator keeps per planned tick [bytes]: the instance manager's completion
+#: time of every tick (float64) and the summary's copy of it.
+BYTES_PER_TICK = 16
 
 
 @dataclass(frozen=True)
@@ -129,7 +110,8 @@ class AgentSpec:
         initial_state: initial state of a simulated plant (units of that plant's state).
         calibration: calibration file (resolved against the experiment file's folder) or
             ``None``.
-        mocap_body: the agent's rigid body in the mocap system (``None``: the agent's name).
+        mocap_body: the agent's rigid body in the motion-capture system (``None``: its name,
+            see :attr:`body`).
     """
 
     name: str
@@ -145,7 +127,7 @@ class AgentSpec:
 
     @property
     def body(self) -> str:
-        """The agent's rigid body name in the mocap system."""
+        """The agent's rigid body name in the motion-capture system."""
         return self.mocap_body or self.name
 
 
@@ -175,6 +157,14 @@ class Experiment:
             neighbours' ``y_{k-1}`` are in, at most this many ticks ahead of the slowest
             agent [ticks]. Results do not depend on it (an agent's input depends on its
             neighbours' outputs only); ``1`` makes every tick a swarm-wide barrier.
+        on_recording_failure: when the recording cannot be written (disk full): ``"stop"``
+            (robots safe, the run ends) or ``"continue"`` unrecorded.
+        max_late_fraction: realtime: late ticks above this fraction of all ticks make the run
+            degraded (0..1).
+        mocap: the ``[mocap]`` table (motion capture) as a
+            :class:`~hilswarm.agents.mocap.config.MocapSettings`, or ``None``.
+        gateway: the ``[gateway]`` table (XBee gateway) as a
+            :class:`~hilswarm.agents.xbee.config.GatewayConfig`, or ``None``.
     """
 
     name: str
@@ -191,8 +181,10 @@ class Experiment:
     graph_file: Path | None = None
     on_agent_safe: Literal["continue", "stop"] = "continue"
     lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
+    on_recording_failure: Literal["stop", "continue"] = "stop"
+    max_late_fraction: float = DEFAULT_MAX_LATE_FRACTION
+    mocap: Any = None
     gateway: Any = None
-    mocap: MocapSettings | None = None
 
     @property
     def dt(self) -> float:
@@ -209,11 +201,15 @@ class Experiment:
         """Agent names in graph order."""
         return tuple(spec.name for spec in self.agents)
 
+    @cached_property
+    def _positions(self) -> dict[str, int]:
+        return {spec.name: i for i, spec in enumerate(self.agents)}
+
     def index(self, name: str) -> int:
         """Row/column of agent ``name`` in :attr:`adjacency` (raises ``KeyError``)."""
-        for i, spec in enumerate(self.agents):
-            if spec.name == name:
-                return i
+        position = self._positions.get(name)
+        if position is not None:
+            return position
         raise KeyError(
             f"experiment {self.name!r} has no agent {name!r}; agents: "
             + ", ".join(self.agent_names)
@@ -226,16 +222,70 @@ class Experiment:
     def neighbours(self, name: str) -> tuple[str, ...]:
         """Agents whose output ``name`` receives (``A[i][j] = 1``), in graph order."""
         row = self.adjacency[self.index(name)]
-        return tuple(spec.name for spec, a in zip(self.agents, row, strict=True) if a)
+        return tuple(self.agents[j].name for j in np.flatnonzero(row))
 
     def receivers(self, name: str) -> tuple[str, ...]:
         """Agents that receive ``name``'s output (``A[j][i] = 1``), in graph order."""
         column = self.adjacency[:, self.index(name)]
-        return tuple(spec.name for spec, a in zip(self.agents, column, strict=True) if a)
+        return tuple(self.agents[j].name for j in np.flatnonzero(column))
 
     def graph_dict(self) -> dict[str, Any]:
         """The graph as plain JSON-able data: ``{"agents": [...], "adjacency": [[...]]}``."""
         return {"agents": list(self.agent_names), "adjacency": self.adjacency.tolist()}
+
+
+@dataclass
+class ExperimentParts:
+    """Whatever could be loaded from an experiment file, also from a broken one.
+
+    The deeper checks (:mod:`~hilswarm.orchestrator.checks`) check every agent in
+    :attr:`agents` even when another table is broken, so one pass reports everything.
+
+    Attributes:
+        path: the experiment file.
+        problems: every problem found while loading.
+        settings: the valid ``[experiment]`` table (overrides applied), or ``None``.
+        agents: agent name -> spec, for every agent whose table (with ``[defaults]``) is valid.
+        graph: ``(names, adjacency, graph file or None)`` when the graph is valid.
+        mocap: the valid ``[mocap]`` table as a
+            :class:`~hilswarm.agents.mocap.config.MocapSettings`, or ``None``.
+        gateway: the valid ``[gateway]`` table as a
+            :class:`~hilswarm.agents.xbee.config.GatewayConfig`, or ``None``.
+        experiment: the experiment, when there is no problem at all.
+    """
+
+    path: Path
+    problems: list[Problem] = field(default_factory=list)
+    settings: ExperimentSection | None = None
+    agents: dict[str, AgentSpec] = field(default_factory=dict)
+    graph: tuple[list[str], np.ndarray, Path | None] | None = None
+    mocap: Any = None
+    gateway: Any = None
+    experiment: Experiment | None = None
+    _positions: dict[str, int] | None = field(default=None, repr=False)
+
+    @property
+    def dt(self) -> float | None:
+        """Control period [s] when ``[experiment]`` is valid."""
+        return 1.0 / self.settings.rate_hz if self.settings is not None else None
+
+    @property
+    def agent_names(self) -> tuple[str, ...] | None:
+        """Agent names in graph order when the graph is valid."""
+        return tuple(self.graph[0]) if self.graph is not None else None
+
+    def neighbours(self, name: str) -> tuple[str, ...] | None:
+        """Agents whose output ``name`` receives, when the graph is valid (see
+        :meth:`Experiment.neighbours`)."""
+        if self.graph is None:
+            return None
+        names, adjacency, _ = self.graph
+        if self._positions is None:
+            self._positions = {n: i for i, n in enumerate(names)}
+        position = self._positions.get(name)
+        if position is None:
+            return None
+        return tuple(names[j] for j in np.flatnonzero(adjacency[position]))
 
 
 def parse_link_overrides(items: Sequence[str]) -> dict[str, str]:
@@ -257,485 +307,192 @@ def parse_link_overrides(items: Sequence[str]) -> dict[str, str]:
     return links
 
 
-def load_experiment(path: str | Path, *, overrides: Mapping[str, Any] | None = None) -> Experiment:
+def load_experiment(
+    path: str | Path,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
+) -> Experiment:
     """Load, check and return the experiment in ``path``.
 
     Args:
         path: the TOML experiment file.
-        overrides: values that replace the file's: ``mode``, ``duration_s``, ``rate_hz``,
-            ``on_agent_loss``, ``watchdog_s``, ``seed`` and ``links`` (agent name -> link URL,
-            e.g. ``{"leader": "/dev/ttyUSB0"}``).
+        overrides: values that replace the file's: any ``[experiment]`` key but ``name``
+            (``mode``, ``duration_s``, ``rate_hz``, ``on_agent_loss``, ``watchdog_s``, ``seed``,
+            ...) and ``links`` (agent name -> link URL, e.g. ``{"leader": "/dev/ttyUSB0"}``).
+        max_agents: most agents accepted (default :data:`DEFAULT_MAX_AGENTS`).
+        remote: agents whose board is on another machine (``hilswarm run --remote``): their
+            links are checked without what only that machine can know (device, firmware).
 
     Raises:
         ExperimentError: listing every problem found (file, key, reason).
     """
-    experiment, problems = parse_experiment(path, overrides=overrides)
+    experiment, problems = parse_experiment(
+        path, overrides=overrides, max_agents=max_agents, remote=remote
+    )
     if problems or experiment is None:
         raise ExperimentError(problems or [Problem(path, "", "cannot be loaded")])
     return experiment
 
 
 def parse_experiment(
-    path: str | Path, *, overrides: Mapping[str, Any] | None = None
+    path: str | Path,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
 ) -> tuple[Experiment | None, list[Problem]]:
     """Like :func:`load_experiment` but return ``(experiment or None, problems)``."""
+    parts = load_parts(path, overrides=overrides, max_agents=max_agents, remote=remote)
+    return parts.experiment, parts.problems
+
+
+def load_parts(
+    path: str | Path,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    max_agents: int = DEFAULT_MAX_AGENTS,
+    remote: Container[str] = (),
+) -> ExperimentParts:
+    """Load ``path`` as far as it goes: see :class:`ExperimentParts`."""
     path = Path(path)
-    problems: list[Problem] = []
+    parts = ExperimentParts(path)
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        return None, [Problem(path, "", "experiment file does not exist")]
+        parts.problems.append(Problem(path, "", "experiment file does not exist"))
+        return parts
     except (OSError, UnicodeDecodeError) as exc:
-        return None, [Problem(path, "", f"cannot read experiment file: {exc}")]
+        parts.problems.append(Problem(path, "", f"cannot read experiment file: {exc}"))
+        return parts
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        return None, [Problem(path, "", f"not valid TOML: {exc}")]
-    experiment = _Parser(path, text, data, problems).parse(overrides or {})
-    return (experiment if not problems else None), problems
+        parts.problems.append(Problem(path, "", f"not valid TOML: {exc}"))
+        return parts
+    _Loader(parts, data, max_agents, remote).load(overrides or {}, text)
+    return parts
 
 
-class _Parser:
-    """Walks the TOML data once, appending a Problem for everything wrong."""
+class _Loader:
+    """Validates each table with its schema model, then the rules that span tables."""
 
-    def __init__(self, path: Path, text: str, data: dict[str, Any], problems: list[Problem]):
-        self.path = path
-        self.text = text
+    def __init__(
+        self,
+        parts: ExperimentParts,
+        data: dict[str, Any],
+        max_agents: int,
+        remote: Container[str],
+    ) -> None:
+        self.parts = parts
+        self.remote = remote
+        self.path = parts.path
         self.data = data
-        self.problems = problems
-        self.graph_names: list[str] | None = None
+        self.max_agents = max_agents
 
     def problem(self, key: str, message: str) -> None:
-        self.problems.append(Problem(self.path, key, message))
+        self.parts.problems.append(Problem(self.path, key, message))
 
-    # -- whole file --------------------------------------------------------------------------
+    def validate(self, model: type[BaseModel], value: Any, key: str) -> Any:
+        """``value`` validated with ``model`` (problems at ``key``), or ``None``."""
+        try:
+            return model.model_validate(value)
+        except ValidationError as exc:
+            self.parts.problems.extend(schema_problems(exc, self.path, key, model))
+            return None
 
-    def parse(self, overrides: Mapping[str, Any]) -> Experiment | None:
-        self._unknown_keys(self.data, TOP_LEVEL_KEYS, "")
-        header = self._table(self.data, "experiment", required=True)
-        if "experiment" in self.data:
-            settings = self._settings(header)
-        else:  # reported once above, not once per missing key
-            settings = dict.fromkeys(EXPERIMENT_KEYS)
-        self._apply_overrides(settings, overrides)
-        defaults = self._table(self.data, "defaults", required=False)
-        self._unknown_keys(defaults, AGENT_KEYS, "defaults")
-        agent_tables = self._table(self.data, "agents", required=True)
-        specs = {
-            name: self._agent(name, table, defaults)
-            for name, table in agent_tables.items()
-            if self._agent_table_ok(name, table)
-        }
-        graph = self._graph(self._table(self.data, "graph", required=True))
-        mocap = self._mocap(settings, specs)
-        links = overrides.get("links") or {}
-        if isinstance(links, Mapping):
-            for name, url in links.items():
-                if name not in agent_tables:
-                    self.problem(f"--link {name}", f"no agent named {name!r} in the experiment")
-                elif not isinstance(url, str) or not url:
-                    self.problem(f"--link {name}", f"link URL must be a non-empty string: {url!r}")
-                elif specs.get(name) is not None:
-                    specs[name] = replace(specs[name], link=url)
+    def load(self, overrides: Mapping[str, Any], text: str) -> None:
+        for key in self.data:
+            if key not in ExperimentFile.model_fields:
+                known = ", ".join(ExperimentFile.model_fields)
+                self.problem(key, f"unknown key; expected one of {known}")
+        settings = self._settings(overrides)
+        gateway = self.parts.gateway = self._gateway()
+        agent_tables = self._table("agents", required=True)
+        too_many = len(agent_tables) > self.max_agents
+        if too_many:
+            self._too_many("agents", len(agent_tables))
         else:
-            self.problem("--link", "link overrides must map agent name -> URL")
-        if graph is None:
-            if self.graph_names is not None:
-                self._match_names(self.graph_names, agent_tables)
-            return None
+            self._agents(agent_tables)
+        self._links(overrides.get("links") or {}, agent_tables)
+        mocap = self.parts.mocap = self._mocap(settings)
+        graph = self._graph(self._table("graph", required=True), skip=too_many)
+        if too_many or self.parts.problems or settings is None or graph is None:
+            return
         names, adjacency, graph_file = graph
-        self._match_names(names, agent_tables)
-        gateway = self._gateway(self.data.get("gateway"))
-        if self.problems:
-            return None
         adjacency.setflags(write=False)
-        return Experiment(
-            name=settings["name"],
+        self.parts.experiment = Experiment(
+            name=settings.name,
             path=self.path,
-            rate_hz=settings["rate_hz"],
-            duration_s=settings["duration_s"],
-            mode=settings["mode"],
-            on_agent_loss=settings["on_agent_loss"],
-            agents=tuple(specs[name] for name in names),
+            rate_hz=settings.rate_hz,
+            duration_s=settings.duration_s,
+            mode=settings.mode,
+            on_agent_loss=settings.on_agent_loss,
+            agents=tuple(self.parts.agents[name] for name in names),
             adjacency=adjacency,
-            source_text=self.text,
-            watchdog_s=settings["watchdog_s"],
-            seed=settings["seed"],
+            source_text=text,
+            watchdog_s=settings.watchdog_s,
+            seed=settings.seed,
             graph_file=graph_file,
-            on_agent_safe=settings["on_agent_safe"],
-            lockstep_window=settings["lockstep_window"],
-            gateway=gateway,
+            on_agent_safe=settings.on_agent_safe,
+            lockstep_window=settings.lockstep_window,
+            on_recording_failure=settings.on_recording_failure,
+            max_late_fraction=settings.max_late_fraction,
             mocap=mocap,
+            gateway=gateway,
         )
 
-    def _gateway(self, table: Any) -> Any:
+    def _mocap(self, settings: ExperimentSection | None) -> Any:
+        """``[mocap]`` as a MocapSettings (``None`` when absent), and the rules between it, the
+        run's mode and the agents' bodies."""
+        if "mocap" not in self.data:
+            for name, spec in self.parts.agents.items():
+                if spec.mocap_body is not None:
+                    self.problem(f"agents.{name}.mocap_body", "given but there is no [mocap]")
+            return None
+        mocap, problems = mocap_settings(self.data["mocap"], file=self.path)
+        self.parts.problems.extend(problems)
+        if settings is not None and settings.mode == "lockstep":
+            self.problem(
+                "experiment.mode", 'a [mocap] system runs on the wall clock; use mode = "realtime"'
+            )
+        bodies: dict[str, str] = {}
+        for name, spec in self.parts.agents.items():
+            other = bodies.setdefault(spec.body, name)
+            if other != name:
+                self.problem(
+                    f"agents.{name}.mocap_body", f"body {spec.body!r} is already agent {other!r}'s"
+                )
+        return mocap
+
+    def _gateway(self) -> Any:
         """``[gateway]`` as a GatewayConfig (``None`` when absent)."""
-        if table is None:
+        section = self._section("gateway", GatewaySection)
+        if section is None:
             return None
         from hilswarm.agents.xbee.config import (  # noqa: PLC0415 - only files with [gateway]
             GatewayConfig,
             GatewayConfigError,
         )
 
-        if not isinstance(table, dict):
-            self.problem("gateway", "must be a table: [gateway]")
-            return None
         try:
-            return GatewayConfig.from_table(table)
+            return GatewayConfig.from_table(section.model_dump())
         except GatewayConfigError as exc:
             self.problem("gateway", str(exc))
             return None
 
-    # -- [mocap] ---------------------------------------------------------------------------
-
-    def _mocap(
-        self, settings: Mapping[str, Any], specs: Mapping[str, AgentSpec]
-    ) -> MocapSettings | None:
-        if "mocap" not in self.data:
-            for name, spec in specs.items():
-                if spec.mocap_body is not None:
-                    self.problem(f"agents.{name}.mocap_body", "given but there is no [mocap]")
-            return None
-        mocap, problems = parse_mocap(self.data["mocap"])
-        for key, message in problems:
-            self.problem(key, message)
-        if mocap is not None and settings.get("mode") == "lockstep":
-            self.problem(
-                "experiment.mode",
-                'a [mocap] system runs on the wall clock; use mode = "realtime"',
-            )
-        bodies: dict[str, str] = {}
-        for name, spec in specs.items():
-            other = bodies.setdefault(spec.body, name)
-            if other != name:
-                self.problem(
-                    f"agents.{name}.mocap_body",
-                    f"body {spec.body!r} is already agent {other!r}'s",
-                )
-        return mocap
-
-    # -- [experiment] ------------------------------------------------------------------------
-
-    def _settings(self, table: dict[str, Any]) -> dict[str, Any]:
-        self._unknown_keys(table, EXPERIMENT_KEYS, "experiment")
-        settings: dict[str, Any] = {}
-        name = table.get("name")
-        if name is None:
-            self.problem("experiment.name", "missing; give the experiment a name")
-        elif not isinstance(name, str) or not NAME_PATTERN.match(name):
-            self.problem(
-                "experiment.name",
-                f"{name!r} is not a valid name; use letters, digits, '_' and '-' only "
-                "(it is part of bus keys)",
-            )
-        settings["name"] = name
-        settings["rate_hz"] = self._rate(table.get("rate_hz"), "experiment.rate_hz")
-        settings["duration_s"] = self._duration(table.get("duration_s"), "experiment.duration_s")
-        settings["mode"] = self._choice(table.get("mode", "lockstep"), MODES, "experiment.mode")
-        settings["on_agent_loss"] = self._choice(
-            table.get("on_agent_loss", "stop"), AGENT_LOSS_POLICIES, "experiment.on_agent_loss"
-        )
-        settings["on_agent_safe"] = self._choice(
-            table.get("on_agent_safe", "continue"), AGENT_SAFE_POLICIES, "experiment.on_agent_safe"
-        )
-        settings["watchdog_s"] = self._watchdog(table.get("watchdog_s"), "experiment.watchdog_s")
-        settings["seed"] = self._seed(table.get("seed"), "experiment.seed")
-        settings["lockstep_window"] = self._window(
-            table.get("lockstep_window", DEFAULT_LOCKSTEP_WINDOW), "experiment.lockstep_window"
-        )
-        return settings
-
-    def _apply_overrides(self, settings: dict[str, Any], overrides: Mapping[str, Any]) -> None:
-        for key, value in overrides.items():
-            where = f"override {key}"
-            if key not in OVERRIDE_KEYS:
-                self.problem(where, f"unknown override; expected one of {', '.join(OVERRIDE_KEYS)}")
-            elif value is None or key == "links":
-                continue
-            elif key == "mode":
-                settings["mode"] = self._choice(value, MODES, where)
-            elif key == "on_agent_loss":
-                settings["on_agent_loss"] = self._choice(value, AGENT_LOSS_POLICIES, where)
-            elif key == "on_agent_safe":
-                settings["on_agent_safe"] = self._choice(value, AGENT_SAFE_POLICIES, where)
-            elif key == "rate_hz":
-                settings["rate_hz"] = self._rate(value, where)
-            elif key == "duration_s":
-                settings["duration_s"] = self._duration(value, where)
-            elif key == "watchdog_s":
-                settings["watchdog_s"] = self._watchdog(value, where)
-            else:
-                settings["seed"] = self._seed(value, where)
-        rate, duration = settings["rate_hz"], settings["duration_s"]
-        if rate is not None and duration is not None and duration * rate < 1.0:
-            self.problem(
-                "experiment.duration_s",
-                f"{duration} s at {rate} Hz is less than one tick; make it at least "
-                f"{1.0 / rate:g} s",
-            )
-
-    def _rate(self, value: Any, key: str) -> float | None:
-        if value is None:
-            self.problem(key, "missing; give the control rate in Hz, e.g. rate_hz = 20")
-            return None
-        number = self._number(value, key)
-        if number is not None and not 0.0 < number <= MAX_RATE_HZ:
-            self.problem(
-                key, f"{value!r} Hz is out of range; expected 0 < rate_hz <= {MAX_RATE_HZ:g}"
-            )
-            return None
-        return number
-
-    def _duration(self, value: Any, key: str) -> float | None:
-        if value is None:
-            self.problem(
-                key, "missing; give the experiment length in seconds, e.g. duration_s = 30"
-            )
-            return None
-        number = self._number(value, key)
-        if number is not None and number <= 0.0:
-            self.problem(key, f"{value!r} s is out of range; expected a duration > 0 s")
-            return None
-        return number
-
-    def _watchdog(self, value: Any, key: str) -> float | None:
-        if value is None:
-            return None
-        number = self._number(value, key)
-        if number is not None and not 0.0 < number <= 60.0:
-            self.problem(key, f"{value!r} s is out of range; expected 0 < watchdog_s <= 60")
-            return None
-        return number
-
-    def _seed(self, value: Any, key: str) -> int | None:
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-            self.problem(key, f"{value!r} is not a valid seed; expected an integer >= 0")
-            return None
-        return value
-
-    def _window(self, value: Any, key: str) -> int:
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, int)
-            or not 1 <= value <= MAX_LOCKSTEP_WINDOW
-        ):
-            self.problem(
-                key,
-                f"{value!r} is not a valid window; expected an integer number of ticks, "
-                f"1 <= lockstep_window <= {MAX_LOCKSTEP_WINDOW}",
-            )
-            return DEFAULT_LOCKSTEP_WINDOW
-        return value
-
-    def _number(self, value: Any, key: str) -> float | None:
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            self.problem(key, f"{value!r} is not a number")
-            return None
-        if not math.isfinite(value):
-            self.problem(key, f"{value!r} is not a finite number")
-            return None
-        return float(value)
-
-    def _choice(self, value: Any, choices: tuple[str, ...], key: str) -> Any:
-        if value not in choices:
-            self.problem(key, f"{value!r} is not one of " + ", ".join(repr(c) for c in choices))
-            return None
-        return value
-
-    # -- [graph] -----------------------------------------------------------------------------
-
-    def _graph(self, table: dict[str, Any]) -> tuple[list[str], np.ndarray, Path | None] | None:
-        self._unknown_keys(table, GRAPH_KEYS, "graph")
-        names = table.get("agents")
-        if names is not None:
-            names = self._graph_names(names)
-            if names is None:
-                return None
-            self.graph_names = names
-        undirected = table.get("undirected", False)
-        if not isinstance(undirected, bool):
-            self.problem("graph.undirected", f"{undirected!r} is not true or false")
-            undirected = False
-        has_matrix, has_file = "adjacency" in table, "file" in table
-        if has_matrix == has_file:
-            self.problem(
-                "graph",
-                "give exactly one of adjacency = [[...]] (with agents = [...]) or "
-                'file = "<graph file>"',
-            )
-            return None
-        if has_matrix:
-            if names is None:
-                self.problem("graph.agents", "missing; an inline adjacency needs agents = [...]")
-                return None
-            matrix = validate_matrix(
-                table["adjacency"],
-                names,
-                file=self.path,
-                key="graph.adjacency",
-                problems=self.problems,
-            )
-            return (names, matrix, None) if matrix is not None else None
-        file_name = table["file"]
-        if not isinstance(file_name, str) or not file_name:
-            self.problem("graph.file", f"{file_name!r} is not a file name")
-            return None
-        graph_path = (self.path.parent / file_name).resolve()
-        result = read_graph_file(
-            graph_path,
-            names,
-            undirected=undirected,
-            file=self.path,
-            key="graph.file",
-            problems=self.problems,
-        )
-        if result is None:
-            return None
-        file_names, matrix = result
-        bad = [n for n in file_names if not NAME_PATTERN.match(n)]
-        for name in bad:
-            self.problem(
-                "graph.file",
-                f"agent name {name!r} in {file_name} is not valid; use "
-                "letters, digits, '_' and '-' only",
-            )
-        return (file_names, matrix, graph_path) if not bad else None
-
-    def _graph_names(self, names: Any) -> list[str] | None:
-        if not isinstance(names, list) or not names:
-            self.problem("graph.agents", "must be a non-empty list of agent names")
-            return None
-        ok = True
-        seen: set[str] = set()
-        for i, name in enumerate(names):
-            if not isinstance(name, str) or not NAME_PATTERN.match(name):
-                self.problem(
-                    f"graph.agents[{i}]",
-                    f"{name!r} is not a valid agent name; use letters, digits, '_' and '-' only",
-                )
-                ok = False
-            elif name in seen:
-                self.problem(f"graph.agents[{i}]", f"agent {name!r} is listed twice")
-                ok = False
-            seen.add(name)
-        return list(names) if ok else None
-
-    def _match_names(self, names: Sequence[str], agent_tables: Mapping[str, Any]) -> None:
-        for i, name in enumerate(names):
-            if name not in agent_tables:
-                self.problem(
-                    f"graph.agents[{i}]",
-                    f"agent {name!r} is in the graph but has no [agents.{name}] table",
-                )
-        for name in agent_tables:
-            if name not in names:
-                self.problem(
-                    f"agents.{name}",
-                    f"agent {name!r} has a table but is not in the graph "
-                    f"(graph agents: {', '.join(names)})",
-                )
-
-    # -- [agents.*] --------------------------------------------------------------------------
-
-    def _agent_table_ok(self, name: str, table: Any) -> bool:
-        if not NAME_PATTERN.match(name):
-            self.problem(
-                f"agents.{name}",
-                f"{name!r} is not a valid agent name; use letters, "
-                "digits, '_' and '-' only (it is part of bus keys)",
-            )
-            return False
-        if not isinstance(table, dict):
-            self.problem(f"agents.{name}", "must be a table ([agents.<name>])")
-            return False
-        return True
-
-    def _agent(self, name: str, table: dict[str, Any], defaults: dict[str, Any]) -> AgentSpec:
-        key = f"agents.{name}"
-        self._unknown_keys(table, AGENT_KEYS, key)
-        merged = _merge(defaults, table)
-        vehicle = self._string(merged.get("vehicle"), f"{key}.vehicle", required=True)
-        controller = self._string(merged.get("controller"), f"{key}.controller", required=True)
-        link = self._string(merged.get("link"), f"{key}.link", required=False)
-        params = self._mapping(merged.get("params", {}), f"{key}.params")
-        vehicle_params = self._mapping(merged.get("vehicle_params", {}), f"{key}.vehicle_params")
-        pinout = self._pinout(merged.get("pinout", {}), f"{key}.pinout")
-        initial_state = self._vector(merged.get("initial_state", []), f"{key}.initial_state")
-        body = None
-        if merged.get("mocap_body") is not None:
-            body = self._string(merged["mocap_body"], f"{key}.mocap_body", required=True)
-            if body is not None and not NAME_PATTERN.match(body):
-                self.problem(f"{key}.mocap_body", f"{body!r}: use letters, digits, '_', '-'")
-                body = None
-        calibration = None
-        if merged.get("calibration") is not None:
-            text = self._string(merged["calibration"], f"{key}.calibration", required=True)
-            calibration = (self.path.parent / text).resolve() if text else None
-        return AgentSpec(
-            name=name,
-            vehicle=vehicle or "",
-            link=link,
-            controller=controller or "",
-            params=params,
-            vehicle_params=vehicle_params,
-            pinout=pinout,
-            initial_state=initial_state,
-            calibration=calibration,
-            mocap_body=body,
+    def _too_many(self, key: str, count: int) -> None:
+        self.problem(
+            key,
+            f"{count} agents is more than {self.max_agents}, the most accepted without an "
+            f"explicit limit (one process per agent); pass --max-agents {count} to allow it",
         )
 
-    def _string(self, value: Any, key: str, *, required: bool) -> str | None:
-        if value is None:
-            if required:
-                self.problem(key, "missing")
-            return None
-        if not isinstance(value, str) or not value.strip():
-            self.problem(key, f"{value!r} is not a non-empty string")
-            return None
-        return value
+    # -- tables --------------------------------------------------------------------------------
 
-    def _mapping(self, value: Any, key: str) -> dict[str, Any]:
-        if not isinstance(value, dict):
-            self.problem(key, f"must be a table, got {type(value).__name__}")
-            return {}
-        return dict(value)
-
-    def _pinout(self, value: Any, key: str) -> dict[str, dict[str, int | str]]:
-        pinout: dict[str, dict[str, int | str]] = {}
-        if not isinstance(value, dict):
-            self.problem(key, "must be a table: device -> { role = pin }")
-            return pinout
-        for device, roles in value.items():
-            if not isinstance(roles, dict):
-                self.problem(
-                    f"{key}.{device}", 'must be a table of role = pin, e.g. { pwm = 5, fwd = "D4" }'
-                )
-                continue
-            for role, pin in roles.items():
-                if isinstance(pin, bool) or not isinstance(pin, int | str):
-                    self.problem(
-                        f"{key}.{device}.{role}",
-                        f'{pin!r} is not a pin; expected a number (13) or a name ("D13", "A0")',
-                    )
-            pinout[device] = dict(roles)
-        return pinout
-
-    def _vector(self, value: Any, key: str) -> tuple[float, ...]:
-        if not isinstance(value, list):
-            self.problem(key, f"must be a list of numbers, got {value!r}")
-            return ()
-        numbers = []
-        for i, item in enumerate(value):
-            number = self._number(item, f"{key}[{i}]")
-            numbers.append(number if number is not None else math.nan)
-        return tuple(numbers)
-
-    # -- helpers -----------------------------------------------------------------------------
-
-    def _table(self, data: dict[str, Any], name: str, *, required: bool) -> dict[str, Any]:
-        value = data.get(name)
+    def _table(self, name: str, *, required: bool) -> dict[str, Any]:
+        value = self.data.get(name)
         if value is None:
             if required:
                 self.problem(name, f"missing [{name}] table")
@@ -745,11 +502,289 @@ class _Parser:
             return {}
         return value
 
-    def _unknown_keys(self, table: Mapping[str, Any], known: tuple[str, ...], where: str) -> None:
-        for key in table:
-            if key not in known:
-                full = f"{where}.{key}" if where else key
-                self.problem(full, f"unknown key; expected one of {', '.join(known)}")
+    def _section(self, name: str, model: type[BaseModel]) -> Any:
+        if name not in self.data:
+            return None
+        table = self._table(name, required=False)
+        return self.validate(model, table, name) if isinstance(self.data[name], dict) else None
+
+    # -- [experiment] and overrides ------------------------------------------------------------
+
+    def _settings(self, overrides: Mapping[str, Any]) -> ExperimentSection | None:
+        table = self._table("experiment", required=True)
+        settings = self.validate(ExperimentSection, table, "experiment") if table else None
+        changes: dict[str, Any] = {}
+        for key, value in overrides.items():
+            where = f"override {key}"
+            if key not in OVERRIDE_KEYS:
+                self.problem(where, f"unknown override; expected one of {', '.join(OVERRIDE_KEYS)}")
+            elif value is not None and key != "links":
+                try:
+                    changes[key] = _FIELD_ADAPTERS[key].validate_python(value)
+                except ValidationError as exc:
+                    self.parts.problems.extend(
+                        schema_problems(exc, self.path, where, ExperimentSection)
+                    )
+        if settings is None:
+            return None
+        settings = settings.model_copy(update=changes)
+        self.parts.settings = settings if self._ticks_ok(settings) else None
+        return self.parts.settings
+
+    def _ticks_ok(self, settings: ExperimentSection) -> bool:
+        rate, duration = settings.rate_hz, settings.duration_s
+        ticks = duration * rate
+        if ticks < 0.5:  # round() would give 0 ticks
+            self.problem(
+                "experiment.duration_s",
+                f"{duration:g} s at {rate:g} Hz is less than one tick; make it at least "
+                f"{1.0 / rate:g} s",
+            )
+            return False
+        if ticks > MAX_TICKS:
+            self.problem(
+                "experiment.duration_s",
+                f"{duration:g} s at {rate:g} Hz is {ticks:.3g} ticks, more than {MAX_TICKS:,}; "
+                f"the orchestrator alone would need {_bytes(ticks * BYTES_PER_TICK)} of memory "
+                f"for it ({BYTES_PER_TICK} bytes per tick, at most "
+                f"{_bytes(MAX_TICKS * BYTES_PER_TICK)}): shorten duration_s or lower rate_hz, "
+                "and run long experiments in parts",
+            )
+            return False
+        return True
+
+    # -- [agents.*] and [defaults] -------------------------------------------------------------
+
+    def _agents(self, agent_tables: Mapping[str, Any]) -> None:
+        defaults_table = self._table("defaults", required=False)
+        defaults = self.validate(AgentTable, defaults_table, "defaults")
+        base = defaults.model_dump(exclude_unset=True) if defaults is not None else {}
+        for name, table in agent_tables.items():
+            key = f"agents.{name}"
+            if not NAME_PATTERN.match(name):
+                self.problem(
+                    key,
+                    f"{name!r} is not a valid agent name; use letters, digits, '_' and '-' only "
+                    "(it is part of bus keys)",
+                )
+                continue
+            if not isinstance(table, dict):
+                self.problem(key, f"must be a table ([{key}])")
+                continue
+            own = self.validate(AgentTable, table, key)
+            merged = _merge(base, own.model_dump(exclude_unset=True) if own else table)
+            missing = [k for k in ("vehicle", "controller") if merged.get(k) is None]
+            for item in missing:
+                self.problem(f"{key}.{item}", f"missing (in [{key}] or [defaults])")
+            if missing or own is None:
+                continue
+            spec = self._spec(name, merged)
+            if spec is not None:
+                self.parts.agents[name] = spec
+
+    def _spec(self, name: str, merged: dict[str, Any]) -> AgentSpec | None:
+        link = merged.get("link")
+        if link is not None and not self._link_ok(name, link):
+            return None
+        calibration = merged.get("calibration")
+        return AgentSpec(
+            name=name,
+            vehicle=merged["vehicle"],
+            link=link,
+            controller=merged["controller"],
+            params=dict(merged.get("params", {})),
+            vehicle_params=dict(merged.get("vehicle_params", {})),
+            pinout={d: dict(roles) for d, roles in merged.get("pinout", {}).items()},
+            initial_state=tuple(merged.get("initial_state", ())),
+            calibration=(self.path.parent / calibration).resolve() if calibration else None,
+            mocap_body=merged.get("mocap_body"),
+        )
+
+    def _link_ok(self, name: str, url: str) -> bool:
+        """Agent ``name``'s link URL is complete and its device exists (as a run opens it)."""
+        try:
+            validate_link_url(url, local=name not in self.remote)
+        except LinkUrlError as exc:
+            self.problem(f"agents.{name}.link", str(exc))
+            return False
+        return True
+
+    def _links(self, links: Any, agent_tables: Mapping[str, Any]) -> None:
+        if not isinstance(links, Mapping):
+            self.problem("--link", "link overrides must map agent name -> URL")
+            return
+        for name, url in links.items():
+            if name not in agent_tables:
+                self.problem(f"--link {name}", f"no agent named {name!r} in the experiment")
+            elif not isinstance(url, str) or not url.strip():
+                self.problem(f"--link {name}", f"link URL must be a non-empty string: {url!r}")
+            elif name in self.parts.agents:
+                spec = self.parts.agents[name]
+                if self._link_ok(name, url):
+                    self.parts.agents[name] = replace(spec, link=url.strip())
+                else:
+                    del self.parts.agents[name]
+
+    # -- [graph] -------------------------------------------------------------------------------
+
+    def _graph(
+        self, table: dict[str, Any], *, skip: bool
+    ) -> tuple[list[str], np.ndarray, Path | None] | None:
+        section: GraphSection | None = self.validate(GraphSection, table, "graph")
+        if section is None or skip:
+            return None
+        names = self._graph_names(section.agents) if section.agents is not None else None
+        if section.agents is not None and names is None:
+            return None
+        if (section.adjacency is None) == (section.file is None):
+            self.problem(
+                "graph",
+                "give exactly one of adjacency = [[...]] (with agents = [...]) or "
+                'file = "<graph file>"',
+            )
+            if names is not None:
+                self._match_names(names)
+            return None
+        if section.adjacency is not None:
+            if names is None:
+                self.problem("graph.agents", "missing; an inline adjacency needs agents = [...]")
+                return None
+            self._match_names(names)
+            matrix = validate_matrix(
+                section.adjacency,
+                names,
+                file=self.path,
+                key="graph.adjacency",
+                problems=self.parts.problems,
+            )
+            graph = (names, matrix, None) if matrix is not None else None
+        else:
+            graph = self._graph_file(section, names)
+        if graph is not None:
+            self.parts.graph = graph
+        return graph
+
+    def _graph_file(
+        self, section: GraphSection, names: list[str] | None
+    ) -> tuple[list[str], np.ndarray, Path | None] | None:
+        file_name = section.file or ""
+        folder = self.path.parent.resolve()
+        graph_path = (folder / file_name).resolve()
+        if not graph_path.is_relative_to(folder):
+            self.problem(
+                "graph.file",
+                f"{file_name!r} is outside the experiment's folder {str(folder)!r}; keep graph "
+                "files beside the experiment file (or in a folder below it)",
+            )
+            if names is not None:
+                self._match_names(names)
+            return None
+        result = read_graph_file(
+            graph_path,
+            names,
+            undirected=section.undirected,
+            file=self.path,
+            key="graph.file",
+            problems=self.parts.problems,
+        )
+        if result is None:
+            if names is not None:
+                self._match_names(names)
+            return None
+        file_names, matrix = result
+        bad = [n for n in file_names if not NAME_PATTERN.match(n)]
+        for name in bad:
+            self.problem(
+                "graph.file",
+                f"agent name {name!r} in {file_name} is not valid; use "
+                "letters, digits, '_' and '-' only",
+            )
+        if len(file_names) > self.max_agents:
+            self._too_many("graph.file", len(file_names))
+            return None
+        self._match_names(file_names)
+        return (file_names, matrix, graph_path) if not bad else None
+
+    def _graph_names(self, names: list[str]) -> list[str] | None:
+        if len(names) > self.max_agents:
+            self._too_many("graph.agents", len(names))
+            return None
+        seen: set[str] = set()
+        ok = True
+        for i, name in enumerate(names):
+            if name in seen:
+                self.problem(f"graph.agents[{i}]", f"agent {name!r} is listed twice")
+                ok = False
+            seen.add(name)
+        return names if ok else None
+
+    def _match_names(self, names: Sequence[str]) -> None:
+        agent_tables = self.data.get("agents")
+        if not isinstance(agent_tables, dict):
+            return
+        for i, name in enumerate(names):
+            if name not in agent_tables:
+                self.problem(
+                    f"graph.agents[{i}]",
+                    f"agent {name!r} is in the graph but has no [agents.{name}] table",
+                )
+        listed = set(names)
+        for name in agent_tables:
+            if name not in listed:
+                self.problem(
+                    f"agents.{name}",
+                    f"agent {name!r} has a table but is not in the graph "
+                    f"(graph agents: {', '.join(names)})",
+                )
+
+
+_OVERRIDE_CONFIG = ConfigDict(strict=True, allow_inf_nan=False)
+#: One validator per overridable [experiment] key, built from the schema's own field.
+_FIELD_ADAPTERS: dict[str, TypeAdapter[Any]] = {
+    key: TypeAdapter(info.rebuild_annotation(), config=_OVERRIDE_CONFIG)
+    for key, info in ExperimentSection.model_fields.items()
+}
+
+
+def mocap_settings(
+    table: Any, *, file: Path | str, where: str = "mocap"
+) -> tuple[Any, list[Problem]]:
+    """A ``[mocap]`` table checked against the schema and read into a
+    :class:`~hilswarm.agents.mocap.config.MocapSettings`: ``(settings or None, problems)``.
+
+    Used for experiment files and for ``hilswarm mocap --system S --host H``.
+    """
+    try:
+        section = MocapSection.model_validate(table)
+    except ValidationError as exc:
+        return None, schema_problems(exc, file, where, MocapSection)
+    problems = []
+    if section.host is None and section.system != "sim":
+        problems.append(
+            Problem(
+                file,
+                key_path(where, ("host",)),
+                'missing; give the mocap server address, e.g. host = "..."',
+            )
+        )
+    if section.sim is not None and section.system != "sim":
+        problems.append(Problem(file, key_path(where, ("sim",)), 'only for system = "sim"'))
+    if problems:
+        return None, problems
+    from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap files only
+
+    data = section.model_dump(exclude_none=True)
+    data.setdefault("host", "127.0.0.1")
+    return MocapSettings.from_dict(data), []
+
+
+def _bytes(count: float) -> str:
+    """``count`` bytes in a readable unit (``1.6 GB``)."""
+    for unit in ("bytes", "kB", "MB", "GB", "TB"):
+        if count < 1000.0 or unit == "TB":
+            return f"{count:.3g} {unit}"
+        count /= 1000.0
+    return f"{count:.3g} TB"
 
 
 def _merge(defaults: Mapping[str, Any], table: Mapping[str, Any]) -> dict[str, Any]:

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
 
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.xbee.gateway_process import GatewayPlan
@@ -28,11 +29,25 @@ class GatewayProcessError(HilswarmError, RuntimeError):
 
 
 class GatewayLauncher:
-    """One gateway process for ``plan``, connected to ``endpoints``."""
+    """One gateway process for ``plan``, connected to ``endpoints``.
 
-    def __init__(self, plan: GatewayPlan, endpoints: Sequence[str], *, verbose: int = 0) -> None:
+    ``run_id``: the run's id; ``credentials``: the gateway principal's credentials file (its
+    path goes on the command line, never the secret).
+    """
+
+    def __init__(
+        self,
+        plan: GatewayPlan,
+        endpoints: Sequence[str],
+        *,
+        run_id: str = "",
+        credentials: Path | None = None,
+        verbose: int = 0,
+    ) -> None:
         self.plan = plan
         self.endpoints = list(endpoints)
+        self.run_id = run_id
+        self.credentials = credentials
         self.verbose = verbose
         self.process: subprocess.Popen[bytes] | None = None
         self.ready_line = ""
@@ -42,6 +57,10 @@ class GatewayLauncher:
         command = [sys.executable, "-m", "hilswarm.agents.xbee.gateway_process"]
         for endpoint in self.endpoints:
             command += ["--connect", endpoint]
+        if self.credentials is not None:
+            command += ["--credentials", str(self.credentials)]
+        elif self.run_id:
+            command += ["--run-id", self.run_id]
         return [*command, "--plan", self.plan.to_json(), *["-v"] * self.verbose]
 
     def start(self, timeout_s: float = START_TIMEOUT_S) -> str:

@@ -26,6 +26,10 @@ from numpy.typing import ArrayLike
 
 #: Eigenvalues whose magnitude is below this are treated as zero.
 ZERO_TOLERANCE = 1e-9
+#: Largest graph whose spectral facts (algebraic connectivity, consensus rate) are computed:
+#: a dense eigen-decomposition is O(n^3) time and O(n^2) memory (1,000 agents: seconds;
+#: 10,000 agents: minutes and GBs). The default agent cap of an experiment is the same.
+SPECTRAL_MAX_AGENTS = 256
 
 
 def information_graph(names: Sequence[str], adjacency: ArrayLike) -> nx.DiGraph:
@@ -74,9 +78,10 @@ class GraphFacts:
         isolated: agents that neither hear nor are heard by anyone.
         in_degree: per agent, how many agents it hears (row sum of ``A``).
         out_degree: per agent, how many agents hear it (column sum of ``A``).
-        algebraic_connectivity: ``lambda_2`` of the undirected Laplacian.
+        algebraic_connectivity: ``lambda_2`` of the undirected Laplacian (``None`` above
+            :data:`SPECTRAL_MAX_AGENTS` agents: not computed).
         consensus_rate: smallest real part of the non-zero eigenvalues of the directed
-            Laplacian (0.0 without a spanning tree).
+            Laplacian (0.0 without a spanning tree; ``None`` when not computed).
         components: weakly connected components, each a tuple of names in graph order.
     """
 
@@ -91,8 +96,8 @@ class GraphFacts:
     isolated: tuple[str, ...]
     in_degree: dict[str, int]
     out_degree: dict[str, int]
-    algebraic_connectivity: float
-    consensus_rate: float
+    algebraic_connectivity: float | None
+    consensus_rate: float | None
     components: tuple[tuple[str, ...], ...]
 
     @property
@@ -114,8 +119,10 @@ class GraphFacts:
             + (f"  roots: {', '.join(self.roots)}" if self.roots else ""),
             f"leaders (hear nobody): {', '.join(self.leaders) or '-'}",
             f"isolated: {', '.join(self.isolated) or '-'}",
-            f"algebraic connectivity (undirected lambda_2): {self.algebraic_connectivity:.6g}",
-            f"consensus rate (directed Laplacian, min Re lambda != 0): {self.consensus_rate:.6g}",
+            "algebraic connectivity (undirected lambda_2): "
+            f"{_spectral(self.algebraic_connectivity)}",
+            f"consensus rate (directed Laplacian, min Re lambda != 0): "
+            f"{_spectral(self.consensus_rate)}",
             "",
             f"{'agent':<{width}}  in  out",
         ]
@@ -146,8 +153,9 @@ def graph_facts(names: Sequence[str], adjacency: ArrayLike) -> GraphFacts:
         )
     graph = information_graph(names, matrix)
     order = {name: i for i, name in enumerate(names)}
-    in_degree = {name: int(matrix[i].sum()) for i, name in enumerate(names)}
-    out_degree = {name: int(matrix[:, i].sum()) for i, name in enumerate(names)}
+    rows, columns = matrix.sum(axis=1).tolist(), matrix.sum(axis=0).tolist()
+    in_degree = {name: int(rows[i]) for i, name in enumerate(names)}
+    out_degree = {name: int(columns[i]) for i, name in enumerate(names)}
     components = tuple(
         tuple(sorted(component, key=order.__getitem__))
         for component in sorted(
@@ -155,6 +163,7 @@ def graph_facts(names: Sequence[str], adjacency: ArrayLike) -> GraphFacts:
         )
     )
     roots = _roots(graph, order)
+    spectral = len(names) <= SPECTRAL_MAX_AGENTS
     return GraphFacts(
         names=names,
         n_edges=int(np.count_nonzero(matrix)),
@@ -167,8 +176,8 @@ def graph_facts(names: Sequence[str], adjacency: ArrayLike) -> GraphFacts:
         isolated=tuple(name for name in names if in_degree[name] == 0 and out_degree[name] == 0),
         in_degree=in_degree,
         out_degree=out_degree,
-        algebraic_connectivity=algebraic_connectivity(matrix),
-        consensus_rate=_consensus_rate(matrix) if roots else 0.0,
+        algebraic_connectivity=algebraic_connectivity(matrix) if spectral else None,
+        consensus_rate=(_consensus_rate(matrix) if roots else 0.0) if spectral else None,
         components=components,
     )
 
@@ -194,3 +203,9 @@ def _consensus_rate(matrix: np.ndarray) -> float:
     # With a spanning tree exactly one eigenvalue is 0 and the others have Re > 0.
     value = float(real_parts[1])
     return 0.0 if abs(value) < ZERO_TOLERANCE else value
+
+
+def _spectral(value: float | None) -> str:
+    if value is None:
+        return f"not computed (more than {SPECTRAL_MAX_AGENTS} agents)"
+    return f"{value:.6g}"

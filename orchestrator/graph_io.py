@@ -42,10 +42,17 @@ def validate_matrix(
     output over the bus: it has it already).
     """
     n = len(names)
-    if not isinstance(rows, list | tuple) or not all(isinstance(r, list | tuple) for r in rows):
+    if not isinstance(rows, list | tuple):
         problems.append(Problem(file, key, "must be a list of rows (a list of lists of 0/1)"))
         return None
     ok = True
+    for i, row in enumerate(rows):  # every bad row is reported; the others are still checked
+        if not isinstance(row, list | tuple):
+            problems.append(
+                Problem(file, f"{key}[{i}]", f"row is {row!r}; expected a list of 0/1 per agent")
+            )
+            ok = False
+    rows = [row if isinstance(row, list | tuple) else [0] * n for row in rows]
     if len(rows) != n:
         problems.append(
             Problem(

@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import socket
 import threading
 from collections.abc import Mapping
 from typing import Any
@@ -38,6 +39,21 @@ LOCALHOST = "127.0.0.1"
 #: Frame of the poses served.
 WORLD_FRAME = "world"
 _HEADINGS = ("psi", "yaw")
+
+
+def port_problem(port: int) -> str:
+    """Why the live view cannot listen on localhost ``port`` ("" if it can; 0 always can)."""
+    if port == 0:
+        return ""
+    if not 0 < port < 65536:
+        return f"--live: {port} is not a TCP port (1..65535, or none for a free one)"
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((LOCALHOST, port))
+        except OSError as exc:
+            return f"--live: cannot listen on {LOCALHOST}:{port}: {exc.strerror or exc}"
+    return ""
 
 
 def pose_entries(schema: Mapping[str, Any]) -> tuple[str, str, str | None, str] | None:

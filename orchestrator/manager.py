@@ -1,9 +1,10 @@
 """The instance manager: schedules the ticks of every agent and accounts for each of them.
 
 The manager owns the bus of an experiment on this machine: it opens a Zenoh *router* session
-listening on loopback (or joins a ``zenohd`` router with ``--connect``), declares its
-liveliness token ``hilswarm/<exp>/alive/_manager``, waits until every agent's liveliness token
-is up (agents declare it after all their publishers and subscribers, so then every
+listening on loopback, on a free port it reads back (or joins a ``zenohd`` router with
+``--connect``), with the run's authentication and access control when given, declares its
+liveliness token ``hilswarm/<exp>/<run_id>/alive/_manager``, waits until every agent's
+liveliness token is up (agents declare it after all their publishers and subscribers, so then every
 subscription is known), and then sends ticks:
 
 * ``lockstep`` — simulated time runs as fast as the agents answer; results are reproducible.
@@ -98,9 +99,12 @@ class InstanceManager:
         recorder: where the record stream goes (a :class:`RecordSink`, or a
             :class:`~hilswarm.orchestrator.recorder.Recorder` written in this process);
             ``None``: nothing is recorded.
-        listen: endpoints of the embedded router session (``tcp/127.0.0.1:<port>``);
-            ignored when ``connect`` is given.
+        listen: endpoints of the embedded router session (``tcp/127.0.0.1:0``: a free port;
+            :attr:`endpoints` holds the bound ones after :meth:`open`); ignored when
+            ``connect`` is given.
         connect: endpoints of an existing Zenoh router to join as a client.
+        run_id: the run's id (bus key prefix ``hilswarm/<exp>/<run_id>``).
+        security: the router's authentication, TLS and access control (``None``: none).
         clock: monotonic clock [s] for scheduling and accounting.
         wall_clock_ns: wall clock [ns, Unix epoch] for MCAP log times.
         answer_timeout_s: lockstep: an agent that does not answer a tick within this is lost.
@@ -120,6 +124,8 @@ class InstanceManager:
         recorder: RecordSink | Recorder | None,
         listen: Sequence[str] = (),
         connect: Sequence[str] = (),
+        run_id: str = "",
+        security: bus.SessionSecurity | None = None,
         clock: Callable[[], float] = time.perf_counter,
         wall_clock_ns: Callable[[], int] = time.time_ns,
         answer_timeout_s: float = DEFAULT_ANSWER_TIMEOUT_S,
@@ -132,7 +138,8 @@ class InstanceManager:
         if not listen and not connect:
             raise ManagerError("the instance manager needs endpoints to listen on or connect to")
         self.experiment = experiment
-        self.keys = bus.BusKeys(experiment.name)
+        self.keys = bus.BusKeys(experiment.name, run_id)
+        self._security = security
         self.names: tuple[str, ...] = experiment.agent_names
         self._index = {name: i for i, name in enumerate(self.names)}
         self.n = len(self.names)
@@ -141,6 +148,8 @@ class InstanceManager:
         self._realtime = experiment.mode == "realtime"
         self._listen = list(listen)
         self._connect = list(connect)
+        #: Endpoints of the bus (after :meth:`open`: the bound ones when listening).
+        self.endpoints: list[str] = list(connect) or list(listen)
         self._clock = clock
         self._wall_ns = wall_clock_ns
         self.answer_timeout_s = answer_timeout_s
@@ -183,11 +192,18 @@ class InstanceManager:
     def open(self) -> None:
         """Open the bus session and declare everything."""
         if self._connect:
-            config = bus.client_config(self._connect)
+            config = bus.client_config(self._connect, security=self._security)
         else:
-            config = bus.listen_config(self._listen)
+            config = bus.listen_config(self._listen, security=self._security)
         session = bus.open_session(config)
         self._session = session
+        if not self._connect:
+            try:
+                self.endpoints = bus.bound_endpoints(session)
+            except bus.BusConnectionError:
+                session.close()
+                self._session = None
+                raise
         keys = self.keys
         self._tick_pub = session.declare_publisher(keys.tick, **bus.TICK_PATH_QOS)
         self._control_pub = session.declare_publisher(keys.control, **bus.TICK_PATH_QOS)
@@ -202,39 +218,32 @@ class InstanceManager:
             )
         # u and x_hat arrive inside the agents' y reports; status and telemetry on their keys
         # (telemetry batches on agent/<name>/telemetry, single vectors one level below).
+        # Explicit keys per agent, never agent/*/...: the router's access control forwards an
+        # agent only subscriptions inside its own keys, which its publishers need to match.
+        for name in self.names:
+            for key, callback in (
+                (keys.status(name), self._on_status),
+                (f"{keys.agent(name, 'telemetry')}/*", self._on_vector),
+                (keys.telemetry_batches(name), self._on_telemetry),
+            ):
+                entities.append(
+                    session.declare_subscriber(
+                        key, zenoh.handlers.Callback(callback, indirect=False)
+                    )
+                )
         entities.append(
             session.declare_subscriber(
-                f"{keys.prefix}/agent/*/status",
-                zenoh.handlers.Callback(self._on_status, indirect=False),
+                keys.manager_request,
+                zenoh.handlers.Callback(self._on_request, indirect=False),
             )
         )
-        entities.append(
-            session.declare_subscriber(
-                f"{keys.prefix}/agent/*/telemetry/*",
-                zenoh.handlers.Callback(self._on_vector, indirect=False),
+        for leaf in ("status", "stats"):  # explicit keys: see above
+            entities.append(
+                session.declare_subscriber(
+                    keys.gateway(leaf),
+                    zenoh.handlers.Callback(self._on_gateway, indirect=False),
+                )
             )
-        )
-        entities.append(
-            session.declare_subscriber(
-                f"{keys.prefix}/agent/*/telemetry",
-                zenoh.handlers.Callback(self._on_telemetry, indirect=False),
-            )
-        )
-        entities.append(
-            session.declare_subscriber(
-                keys.gateway("*"),
-                zenoh.handlers.Callback(self._on_gateway, indirect=False),
-            )
-        )
-        put = self._events.put
-        entities.append(
-            session.declare_subscriber(
-                keys.control,
-                zenoh.handlers.Callback(
-                    lambda s: put((_CONTROL, s.payload.to_bytes())), indirect=False
-                ),
-            )
-        )
         entities.append(
             session.liveliness().declare_subscriber(
                 keys.all_alive,
@@ -344,6 +353,19 @@ class InstanceManager:
         frame = telemetry_frame(i, self._wall_ns(), sample.payload.to_bytes())
         with self._lock:
             self._frames.append(frame)
+
+    def _on_request(self, sample: zenoh.Sample) -> None:
+        """An operator's command (``hilswarm stop``): forwarded on ``control`` at once, so an
+        e-stop reaches the agents without waiting for the ticking thread; then handled there.
+        Only the manager puts on ``control`` (the router's access control enforces it)."""
+        try:
+            command, reason = bus.decode_control(sample.payload.to_bytes())
+        except bus.BusMessageError as exc:
+            logger.warning("operator request not understood: %s", exc)
+            return
+        payload = bus.encode_control(command, reason=reason)
+        self._events.put((_CONTROL, payload))  # first: the manager knows before any agent
+        self._control_pub.put(payload)
 
     def _on_gateway(self, sample: zenoh.Sample) -> None:
         """The XBee gateway's status and per-tick figures (JSON): recorded as they came."""

@@ -22,6 +22,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -50,15 +51,31 @@ class MocapRunner:
     Args:
         experiment: the experiment (with a ``[mocap]`` section).
         endpoints: Zenoh endpoints of the run's bus.
+        run_id: the run's id.
+        credentials: the mocap principal's credentials file, handed to both processes by path
+            (``None``: the bus needs none).
+        security: this runner's own session's credentials (the run's viewer).
         verbose: log verbosity of the mocap process.
     """
 
-    def __init__(self, experiment: Experiment, endpoints: Sequence[str], *, verbose: int = 0):
+    def __init__(
+        self,
+        experiment: Experiment,
+        endpoints: Sequence[str],
+        *,
+        run_id: str = "",
+        credentials: Path | None = None,
+        security: bus.SessionSecurity | None = None,
+        verbose: int = 0,
+    ):
         if experiment.mocap is None:
             raise MocapError(f"experiment {experiment.name!r} has no [mocap] section")
         self.experiment = experiment
         self.settings = experiment.mocap
         self.endpoints = list(endpoints)
+        self.run_id = run_id
+        self.credentials = credentials
+        self.security = security
         self.verbose = verbose
         self.bodies = [spec.body for spec in experiment.agents]
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
@@ -71,14 +88,18 @@ class MocapRunner:
         args = ["--experiment", self.experiment.name, "--bodies", ",".join(self.bodies)]
         for endpoint in self.endpoints:
             args += ["--connect", endpoint]
+        if self.credentials is not None:
+            args += ["--credentials", str(self.credentials)]
+        else:
+            args += ["--run-id", self.run_id]
         return [*args, "--settings", json.dumps(self.settings.to_dict())]
 
     def start(self) -> None:
         """Start the simulator (sim only) and the mocap process; watch the mocap status."""
-        self._session = bus.open_session(bus.client_config(self.endpoints))
+        self._session = bus.open_session(bus.client_config(self.endpoints, security=self.security))
         self._entities.append(
             self._session.declare_subscriber(
-                bus.BusKeys(self.experiment.name).mocap_status,
+                bus.BusKeys(self.experiment.name, self.run_id).mocap_status,
                 zenoh.handlers.Callback(self._on_status, indirect=False),
             )
         )

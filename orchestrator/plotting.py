@@ -3,14 +3,22 @@
 From one MCAP file written by the recorder:
 
 * ``outputs.png`` — every agent's output ``y`` against experiment time, one panel per output
-  entry, one line per agent;
+  entry (named and in the units the vehicle declares, angles in [rad] unwrapped), one line per
+  agent, the agents' references (controller parameter ``reference``) dashed;
 * ``inputs.png`` — the same for the inputs ``u``;
-* ``paths.png`` — the x–y paths of all agents in the world frame (when ``y`` has at least two
-  entries; which entries are x and y is configurable), start marked ``o``, end ``s``;
-* ``ticks.png`` — the tick latency from ``/orchestrator/ticks``: time series and histogram.
+* ``paths.png`` — the x–y paths of all agents in the world frame (entries ``xy`` of ``y``),
+  start marked ``o``, end ``s``, the waypoints of the agents (parameters ``waypoints`` or
+  ``waypoint``) as ``x`` joined by dotted lines;
+* ``ticks.png`` — the tick latency from ``/orchestrator/ticks`` against experiment time, with
+  the deadline (one period, ``1 / rate_hz``) drawn, and its histogram;
+* ``latency.png`` (``latency=True``) — where each tick's time went, per agent: controller,
+  apply, board link, sense and bus (the rest of the answer time), stacked, against time, and
+  the median split per agent.
 
-A plot whose data is absent from the recording is skipped. Truncated recordings are read up to
-their last complete chunk.
+Safe-mode entries, lost agents and e-stops (from ``/<agent>/status`` and
+``/orchestrator/status``) are marked by vertical lines on every time axis. A plot whose data
+is absent from the recording is skipped. Truncated recordings are read up to their last
+complete chunk.
 """
 
 from __future__ import annotations
@@ -30,6 +38,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import iter_messages, read_schemas
+from hilswarm.agents.record_schema import entry_names_units
+from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
 logger = logging.getLogger(__name__)
@@ -42,9 +52,27 @@ TICK_LATENCY_KEYS: tuple[str, ...] = (
     "round_trip_s",
     "elapsed_s",
 )
+#: The ledger of one agent's tick in ``/orchestrator/ticks`` (``agents.<name>``), in the order
+#: the time is spent, with the label of each part [s].
+LEDGER_PARTS: tuple[tuple[str, str], ...] = (
+    ("compute_s", "controller"),
+    ("actuate_s", "apply u"),
+    ("link_s", "board link"),
+    ("sense_s", "sense y"),
+    ("bus_s", "bus and waits"),
+)
+#: Lifecycle states marked on every time axis, and their line colours.
+EVENT_COLOURS: dict[str, str] = {"safe": "tab:orange", "lost": "tab:red", "estop": "black"}
 #: More agents than this and the legends are left out (they would cover the data).
 MAX_LEGEND_ENTRIES = 12
+#: Agents drawn in the latency figure's time panels (the slowest by median answer time).
+MAX_LATENCY_PANELS = 6
+_ANGLE_UNITS = ("rad",)
 _DPI = 120
+
+
+class PlotError(RecordingError):
+    """A plot request names something the recording does not have (exit status 2)."""
 
 
 @dataclass
@@ -57,12 +85,29 @@ class Series:
         values: one row per message, shape ``(n, width)``; NaN where a message had fewer
             entries or a ``null``.
         names: names of the entries (from the topic's schema), or ``values[i]``.
+        units: unit of each entry (``""``: none declared).
     """
 
     k: np.ndarray
     t: np.ndarray
     values: np.ndarray
     names: tuple[str, ...]
+    units: tuple[str, ...] = ()
+
+    def label(self, entry: int) -> str:
+        """Axis label of an entry: ``psi [rad]``."""
+        unit = self.units[entry] if entry < len(self.units) else ""
+        return f"{self.names[entry]} [{unit}]" if unit else self.names[entry]
+
+
+@dataclass(frozen=True)
+class Event:
+    """A lifecycle event worth marking: an agent went safe or was lost, an e-stop."""
+
+    t: float
+    agent: str
+    state: str
+    detail: str = ""
 
 
 @dataclass
@@ -74,16 +119,35 @@ class RecordingData:
         inputs: agent -> its ``/<agent>/u`` series.
         ticks: the ``/orchestrator/ticks`` messages (dicts), in order.
         experiment: the ``/experiment`` message, or ``None``.
+        events: safe / lost / e-stop events, in time order.
     """
 
     outputs: dict[str, Series] = field(default_factory=dict)
     inputs: dict[str, Series] = field(default_factory=dict)
     ticks: list[dict[str, Any]] = field(default_factory=list)
     experiment: dict[str, Any] | None = None
+    events: list[Event] = field(default_factory=list)
+
+    @property
+    def agent_names(self) -> tuple[str, ...]:
+        """Agents of the run (graph order), or those with data."""
+        graph = ((self.experiment or {}).get("graph") or {}).get("agents")
+        return tuple(graph) if graph else tuple(dict.fromkeys([*self.outputs, *self.inputs]))
+
+    @property
+    def period_s(self) -> float | None:
+        """The tick period [s] (``1 / rate_hz``), when the recording says."""
+        rate = ((self.experiment or {}).get("settings") or {}).get("rate_hz")
+        return 1.0 / float(rate) if isinstance(rate, int | float) and rate > 0 else None
+
+    def params(self, agent: str) -> dict[str, Any]:
+        """The controller parameters ``agent`` ran with (from ``/experiment``)."""
+        spec = ((self.experiment or {}).get("agents") or {}).get(agent) or {}
+        return dict(spec.get("params") or {})
 
 
 def load_recording(path: str | os.PathLike[str]) -> RecordingData:
-    """Read ``/<agent>/y``, ``/<agent>/u``, ``/orchestrator/ticks`` and ``/experiment``.
+    """Read ``/<agent>/y``, ``/<agent>/u``, statuses, ``/orchestrator/ticks``, ``/experiment``.
 
     Raises:
         RecordingError: the file does not exist.
@@ -98,56 +162,76 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
             data.experiment = message
         elif topic == "/orchestrator/ticks":
             data.ticks.append(message)
+        elif topic.endswith("/status"):
+            _add_event(data.events, topic, message)
         elif _vector_kind(topic) is not None:
             rows.setdefault(topic, []).append(
                 (int(message["k"]), _float(message.get("t")), list(message.get("values") or []))
             )
+    data.events.sort(key=lambda event: event.t)
     schemas = read_schemas(path)
     graph_order = ((data.experiment or {}).get("graph") or {}).get("agents") or []
     rank = {name: i for i, name in enumerate(graph_order)}
     ordered = sorted(rows.items(), key=lambda item: rank.get(item[0][1:].split("/")[0], len(rank)))
     for topic, samples in ordered:
         agent, kind = topic[1:].split("/")
-        series = _series(samples, _entry_names(schemas.get(topic, {})))
+        names, units = entry_names_units(schemas.get(topic, {}))
+        series = _series(samples, names, units)
         (data.outputs if kind == "y" else data.inputs)[agent] = series
     return data
+
+
+def _add_event(events: list[Event], topic: str, message: dict[str, Any]) -> None:
+    state = str(message.get("state", ""))
+    if state not in EVENT_COLOURS:
+        return
+    agent = str(message.get("agent") or topic[1:].split("/", maxsplit=1)[0])
+    events.append(Event(_float(message.get("t")), agent, state, str(message.get("detail", ""))))
 
 
 def plot_recording(
     path: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
-    xy: Sequence[int] = (0, 1),
+    xy: Sequence[int | str] = (0, 1),
     agents: Iterable[str] | None = None,
+    fields: Iterable[str] | None = None,
+    latency: bool = False,
 ) -> list[Path]:
     """Write the PNG plots of recording ``path`` into ``out_dir``; return the files written.
 
     Args:
         path: the MCAP recording.
         out_dir: folder for the PNG files (created if needed).
-        xy: indices of the x and y position entries of ``y`` for the path plot.
+        xy: the x and y position entries of ``y`` for the path plot, by index or name.
         agents: only these agents (default: all).
+        fields: only these entries of ``y`` and ``u``, by name (default: all).
+        latency: also write ``latency.png``, where each tick's time went.
 
     Raises:
-        RecordingError: a missing file or bad ``xy`` indices.
+        RecordingError: a missing file.
+        PlotError: an unknown agent or field, or bad ``xy`` (the message lists the valid
+            names).
     """
-    if len(xy) != 2 or any(isinstance(i, bool) or not isinstance(i, int) or i < 0 for i in xy):
-        raise RecordingError(f"xy must be two entry indices >= 0, got {xy!r}")
     data = load_recording(path)
     if agents is not None:
-        wanted = set(agents)
-        data.outputs = {a: s for a, s in data.outputs.items() if a in wanted}
-        data.inputs = {a: s for a, s in data.inputs.items() if a in wanted}
+        _select_agents(data, list(agents))
+    ix, iy = _xy_indices(data, xy)
+    positions = dict(data.outputs)  # the path plot needs x and y whatever the fields shown
+    if fields is not None:
+        _select_fields(data, list(fields))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     title = (data.experiment or {}).get("name") or Path(path).stem
     written: list[Path] = []
-    jobs = (
-        ("outputs.png", lambda: _signals_figure(data.outputs, f"{title}: outputs y")),
-        ("inputs.png", lambda: _signals_figure(data.inputs, f"{title}: inputs u")),
-        ("paths.png", lambda: _paths_figure(data.outputs, xy, f"{title}: x-y paths")),
-        ("ticks.png", lambda: _ticks_figure(data.ticks, f"{title}: tick latency")),
-    )
+    jobs = [
+        ("outputs.png", lambda: _signals_figure(data, data.outputs, f"{title}: outputs y", True)),
+        ("inputs.png", lambda: _signals_figure(data, data.inputs, f"{title}: inputs u", False)),
+        ("paths.png", lambda: _paths_figure(data, (ix, iy), f"{title}: x-y paths", positions)),
+        ("ticks.png", lambda: _ticks_figure(data, f"{title}: tick latency")),
+    ]
+    if latency:
+        jobs.append(("latency.png", lambda: _latency_figure(data, f"{title}: tick ledger")))
     for name, build in jobs:
         figure = build()
         if figure is None:
@@ -160,39 +244,154 @@ def plot_recording(
     return written
 
 
+# -- selections --------------------------------------------------------------------------------
+
+
+def _select_agents(data: RecordingData, wanted: list[str]) -> None:
+    known = data.agent_names
+    unknown = [name for name in wanted if name not in known]
+    if unknown:
+        raise PlotError(
+            f"--agent: unknown agent(s) {', '.join(unknown)}; agents: {', '.join(known)}"
+        )
+    data.outputs = {a: s for a, s in data.outputs.items() if a in wanted}
+    data.inputs = {a: s for a, s in data.inputs.items() if a in wanted}
+    data.events = [e for e in data.events if e.agent in wanted or e.agent == "orchestrator"]
+
+
+def _select_fields(data: RecordingData, wanted: list[str]) -> None:
+    known = list(
+        dict.fromkeys(n for s in [*data.outputs.values(), *data.inputs.values()] for n in s.names)
+    )
+    unknown = [name for name in wanted if name not in known]
+    if unknown:
+        raise PlotError(
+            f"--field: unknown field(s) {', '.join(unknown)}; fields of y and u: {', '.join(known)}"
+        )
+    for signals in (data.outputs, data.inputs):
+        for agent, series in list(signals.items()):
+            keep = [i for i, name in enumerate(series.names) if name in wanted]
+            if not keep:
+                del signals[agent]
+                continue
+            signals[agent] = Series(
+                series.k,
+                series.t,
+                series.values[:, keep],
+                tuple(series.names[i] for i in keep),
+                tuple(series.units[i] for i in keep if i < len(series.units)),
+            )
+
+
+def _xy_indices(data: RecordingData, xy: Sequence[int | str]) -> tuple[int, int]:
+    """``xy`` as two entry indices of ``y`` (names resolved); PlotError lists valid ones."""
+    names = list(dict.fromkeys(n for s in data.outputs.values() for n in s.names))
+    width = max((s.values.shape[1] for s in data.outputs.values()), default=0)
+    valid = f"indices 0..{width - 1}" + (f" or names {', '.join(names)}" if names else "")
+    if len(xy) != 2:
+        raise PlotError(f"--xy must be two entries of y like 0,1 or x,y ({valid}); got {xy!r}")
+    indices = []
+    for item in xy:
+        if isinstance(item, str) and not item.isdigit():
+            found = [s.names.index(item) for s in data.outputs.values() if item in s.names]
+            if not found:
+                raise PlotError(f"--xy: y has no entry {item!r}; valid: {valid}")
+            indices.append(found[0])
+            continue
+        index = int(item)
+        if isinstance(item, bool) or index < 0 or (data.outputs and index >= width):
+            raise PlotError(f"--xy: y has no entry {item!r}; valid: {valid}")
+        indices.append(index)
+    return indices[0], indices[1]
+
+
 # -- figures -----------------------------------------------------------------------------------
 
 
-def _signals_figure(signals: dict[str, Series], title: str) -> Figure | None:
+def _signals_figure(
+    data: RecordingData, signals: dict[str, Series], title: str, references: bool
+) -> Figure | None:
     if not signals:
         return None
     width = max(series.values.shape[1] for series in signals.values())
     if width == 0:
         return None
-    names = _common_names(signals, width)
     figure, axes = plt.subplots(
         width, 1, sharex=True, figsize=(8, 2.0 + 1.6 * width), squeeze=False
     )
+    colours: dict[str, str] = {}
     for entry, axis in enumerate(axes[:, 0]):
+        labels = set()
         for agent, series in signals.items():
-            if entry < series.values.shape[1]:
-                axis.plot(series.t, series.values[:, entry], label=agent, linewidth=1.2)
-        axis.set_ylabel(names[entry])
+            if entry >= series.values.shape[1]:
+                continue
+            values = series.values[:, entry]
+            unit = series.units[entry] if entry < len(series.units) else ""
+            if unit in _ANGLE_UNITS:
+                values = _unwrap(values)
+            (line,) = axis.plot(series.t, values, label=agent, linewidth=1.2)
+            colours[agent] = line.get_color()
+            labels.add(series.label(entry))
+            reference = _reference(data, agent, series) if references else None
+            if reference is not None and entry < len(reference):
+                axis.axhline(reference[entry], color=line.get_color(), linestyle="--",
+                             linewidth=0.9, alpha=0.8)  # fmt: skip
+        axis.set_ylabel(labels.pop() if len(labels) == 1 else f"values[{entry}]")
         axis.grid(True, alpha=0.3)
+        _mark_events(axis, data.events)
     axes[-1, 0].set_xlabel("experiment time t [s]")
     if len(signals) <= MAX_LEGEND_ENTRIES:
         axes[0, 0].legend(loc="best", fontsize="small", ncols=min(len(signals), 4))
-    figure.suptitle(title)
+    notes = "dashed: reference; " if references and _any_reference(data, signals) else ""
+    figure.suptitle(title + _events_note(data.events, notes))
     figure.tight_layout()
     return figure
 
 
-def _paths_figure(outputs: dict[str, Series], xy: Sequence[int], title: str) -> Figure | None:
+def _reference(data: RecordingData, agent: str, series: Series) -> list[float] | None:
+    """The agent's ``reference`` parameter when it is one number per entry of ``y``."""
+    value = data.params(agent).get("reference")
+    if (
+        isinstance(value, list)
+        and len(value) == series.values.shape[1]
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ):
+        return [float(v) for v in value]
+    return None
+
+
+def _any_reference(data: RecordingData, signals: dict[str, Series]) -> bool:
+    return any(_reference(data, agent, series) is not None for agent, series in signals.items())
+
+
+def _waypoints(data: RecordingData, agent: str) -> np.ndarray | None:
+    """The agent's waypoints ``[[x, y], ...]`` (parameter ``waypoints`` or ``waypoint``)."""
+    params = data.params(agent)
+    raw = params.get("waypoints")
+    if raw is None and isinstance(params.get("waypoint"), list):
+        raw = [params["waypoint"]]
+    try:
+        points = np.array(raw, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if points.ndim != 2 or points.shape[1] < 2 or not len(points):
+        return None
+    return points[:, :2]
+
+
+def _paths_figure(
+    data: RecordingData,
+    xy: tuple[int, int],
+    title: str,
+    outputs: dict[str, Series] | None = None,
+) -> Figure | None:
     ix, iy = xy
+    outputs = data.outputs if outputs is None else outputs
     usable = {a: s for a, s in outputs.items() if s.values.shape[1] > max(ix, iy)}
     if not usable:
         return None
     figure, axis = plt.subplots(figsize=(7, 7))
+    drew_waypoints = False
     for agent, series in usable.items():
         x, y = series.values[:, ix], series.values[:, iy]
         (line,) = axis.plot(x, y, label=agent, linewidth=1.2)
@@ -201,40 +400,113 @@ def _paths_figure(outputs: dict[str, Series], xy: Sequence[int], title: str) -> 
             first, last = np.flatnonzero(finite)[[0, -1]]
             axis.plot(x[first], y[first], "o", color=line.get_color())
             axis.plot(x[last], y[last], "s", color=line.get_color())
+        points = _waypoints(data, agent)
+        if points is not None:
+            axis.plot(points[:, 0], points[:, 1], "x:", color=line.get_color(), markersize=9)
+            drew_waypoints = True
     any_series = next(iter(usable.values()))
-    axis.set_xlabel(_axis_label(any_series.names[ix], ix))
-    axis.set_ylabel(_axis_label(any_series.names[iy], iy))
+    axis.set_xlabel(_position_label(any_series, ix))
+    axis.set_ylabel(_position_label(any_series, iy))
     axis.set_aspect("equal", adjustable="datalim")
     axis.grid(True, alpha=0.3)
     if len(usable) <= MAX_LEGEND_ENTRIES:
         axis.legend(loc="best", fontsize="small")
-    axis.set_title(f"{title}  (o start, s end)")
+    legend = "o start, s end" + (", x waypoints" if drew_waypoints else "")
+    axis.set_title(f"{title}  ({legend})")
     figure.tight_layout()
     return figure
 
 
-def _ticks_figure(ticks: list[dict[str, Any]], title: str) -> Figure | None:
-    latency = tick_latencies(ticks)
+def _ticks_figure(data: RecordingData, title: str) -> Figure | None:
+    latency = tick_latencies(data.ticks)
     if latency is None:
         return None
-    k, seconds, key = latency
+    _, seconds, key = latency
+    t = np.array([_float(m.get("t")) for m in data.ticks])
     milliseconds = seconds * 1e3
+    deadline = data.period_s
     figure, (series_axis, histogram_axis) = plt.subplots(2, 1, figsize=(8, 6))
-    series_axis.plot(k, milliseconds, linewidth=0.8)
-    series_axis.set_xlabel("tick k")
+    series_axis.plot(t, milliseconds, linewidth=0.8, label=key)
+    series_axis.set_xlabel("experiment time t [s]")
     series_axis.set_ylabel(f"{key} [ms]")
     series_axis.grid(True, alpha=0.3)
+    _mark_events(series_axis, data.events)
     finite = milliseconds[np.isfinite(milliseconds)]
     histogram_axis.hist(finite, bins=min(60, max(5, finite.size // 10)))
     histogram_axis.set_xlabel(f"{key} [ms]")
     histogram_axis.set_ylabel("ticks")
+    if deadline is not None:
+        label = f"deadline (one period) {deadline * 1e3:g} ms"
+        series_axis.axhline(deadline * 1e3, color="tab:red", linestyle="--", label=label)
+        histogram_axis.axvline(deadline * 1e3, color="tab:red", linestyle="--", label=label)
+        series_axis.legend(loc="best", fontsize="small")
     if finite.size:
         p50, p99 = np.percentile(finite, [50, 99])
+        over = "" if deadline is None else f", {int((finite > deadline * 1e3).sum())} over"
         histogram_axis.set_title(
             f"median {p50:.3f} ms, p99 {p99:.3f} ms, max {finite.max():.3f} ms "
-            f"({finite.size} ticks)"
+            f"({finite.size} ticks{over})"
         )
-    figure.suptitle(title)
+    figure.suptitle(title + _events_note(data.events, ""))
+    figure.tight_layout()
+    return figure
+
+
+def tick_ledger(ticks: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per agent ``(t [s], parts [s])`` from ``/orchestrator/ticks``: one row per tick the
+    agent answered, one column per :data:`LEDGER_PARTS` entry (NaN where not recorded).
+    """
+    rows: dict[str, list[tuple[float, list[float]]]] = {}
+    for message in ticks:
+        t = _float(message.get("t"))
+        for agent, entry in (message.get("agents") or {}).items():
+            if isinstance(entry, dict):
+                parts = [_float(entry.get(key)) for key, _ in LEDGER_PARTS]
+                rows.setdefault(agent, []).append((t, parts))
+    return {
+        agent: (np.array([r[0] for r in items]), np.array([r[1] for r in items], dtype=float))
+        for agent, items in rows.items()
+    }
+
+
+def _latency_figure(data: RecordingData, title: str) -> Figure | None:
+    ledger = tick_ledger(data.ticks)
+    if data.outputs or data.inputs:
+        shown = set(data.outputs) | set(data.inputs)
+        ledger = {a: v for a, v in ledger.items() if a in shown}
+    ledger = {a: v for a, v in ledger.items() if np.isfinite(v[1]).any()}
+    if not ledger:
+        return None
+    medians = {a: np.nan_to_num(np.nanmedian(parts, axis=0)) for a, (_, parts) in ledger.items()}
+    slowest = sorted(ledger, key=lambda a: -float(medians[a].sum()))[:MAX_LATENCY_PANELS]
+    n = len(slowest)
+    figure, axes = plt.subplots(n + 1, 1, figsize=(9, 2.4 * (n + 1) + 1), squeeze=False)
+    labels = [label for _, label in LEDGER_PARTS]
+    deadline = data.period_s
+    for axis, agent in zip(axes[:n, 0], slowest, strict=True):
+        t, parts = ledger[agent]
+        stacks = np.nan_to_num(np.clip(parts, 0.0, None)).T * 1e3
+        axis.stackplot(t, stacks, labels=labels, alpha=0.85)
+        if deadline is not None:
+            axis.axhline(deadline * 1e3, color="tab:red", linestyle="--", linewidth=1)
+        axis.set_ylabel(f"{agent} [ms]")
+        axis.set_xlabel("experiment time t [s]")
+        axis.grid(True, alpha=0.3)
+        _mark_events(axis, data.events)
+    axes[0, 0].legend(loc="upper right", fontsize="small", ncols=len(labels))
+    bars = axes[n, 0]
+    names = list(ledger)
+    left = np.zeros(len(names))
+    for j, label in enumerate(labels):
+        widths = np.array([medians[a][j] for a in names]) * 1e3
+        bars.barh(names, widths, left=left, label=label)
+        left += widths
+    if deadline is not None:
+        bars.axvline(deadline * 1e3, color="tab:red", linestyle="--", label="deadline")
+    bars.set_xlabel("median time per tick [ms]")
+    bars.invert_yaxis()
+    bars.grid(True, axis="x", alpha=0.3)
+    figure.suptitle(f"{title}: where each tick's time went (red dashed: deadline)")
     figure.tight_layout()
     return figure
 
@@ -261,6 +533,33 @@ def tick_latencies(ticks: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray,
 # -- helpers -----------------------------------------------------------------------------------
 
 
+def _mark_events(axis: Axes, events: Sequence[Event]) -> None:
+    """A vertical line per safe / lost / e-stop event (its colour says which)."""
+    for event in events:
+        if np.isfinite(event.t):
+            axis.axvline(event.t, color=EVENT_COLOURS[event.state], linestyle=":", linewidth=1.2)
+
+
+def _events_note(events: Sequence[Event], prefix: str) -> str:
+    if not events:
+        return f"\n({prefix.rstrip('; ')})" if prefix else ""
+    seen = dict.fromkeys(f"{e.state} {e.agent} t={e.t:.2f} s" for e in events[:4])
+    more = f" +{len(events) - 4}" if len(events) > 4 else ""
+    return f"\n({prefix}dotted: {'; '.join(seen)}{more})"
+
+
+def _unwrap(values: np.ndarray) -> np.ndarray:
+    """An angle series [rad] without its ±π jumps (NaN gaps kept)."""
+    result = values.copy()
+    finite = np.isfinite(values)
+    result[finite] = np.unwrap(values[finite])
+    return result
+
+
+def _position_label(series: Series, index: int) -> str:
+    return f"{series.label(index)} (y[{index}])"
+
+
 def _vector_kind(topic: str) -> str | None:
     parts = topic[1:].split("/") if topic.startswith("/") else []
     if len(parts) == 2 and parts[0] != "orchestrator" and parts[1] in ("y", "u"):
@@ -268,43 +567,25 @@ def _vector_kind(topic: str) -> str | None:
     return None
 
 
-def _series(samples: list[tuple[int, float, list[float | None]]], names: tuple[str, ...]) -> Series:
+def _series(
+    samples: list[tuple[int, float, list[float | None]]],
+    names: tuple[str, ...],
+    units: tuple[str, ...],
+) -> Series:
     width = max((len(values) for _, _, values in samples), default=0)
     values = np.full((len(samples), width), np.nan)
     for row, (_, _, entries) in enumerate(samples):
         values[row, : len(entries)] = [_float(v) for v in entries]
     order = np.argsort([k for k, _, _ in samples], kind="stable")
     full_names = tuple(names[i] if i < len(names) else f"values[{i}]" for i in range(width))
+    full_units = tuple(units[i] if i < len(units) else "" for i in range(width))
     return Series(
         k=np.array([k for k, _, _ in samples])[order],
         t=np.array([t for _, t, _ in samples])[order],
         values=values[order],
         names=full_names,
+        units=full_units,
     )
-
-
-def _entry_names(schema: dict[str, Any]) -> tuple[str, ...]:
-    """Entry names of a vector topic: schema properties described as ``values[i]``."""
-    named: dict[int, str] = {}
-    for name, spec in (schema.get("properties") or {}).items():
-        description = spec.get("description", "") if isinstance(spec, dict) else ""
-        if description.startswith("values[") and description.endswith("]"):
-            index = description[len("values[") : -1]
-            if index.isdigit():
-                named[int(index)] = name
-    return tuple(named.get(i, f"values[{i}]") for i in range(len(named)))
-
-
-def _common_names(signals: dict[str, Series], width: int) -> tuple[str, ...]:
-    names = []
-    for entry in range(width):
-        labels = {s.names[entry] for s in signals.values() if entry < len(s.names)}
-        names.append(labels.pop() if len(labels) == 1 else f"values[{entry}]")
-    return tuple(names)
-
-
-def _axis_label(name: str, index: int) -> str:
-    return f"y[{index}]" if name == f"values[{index}]" else f"{name} (y[{index}])"
 
 
 def _float(value: Any) -> float:

@@ -60,9 +60,12 @@ _VECTOR_HEAD = struct.Struct("<BIHqH")
 _GATEWAY_HEAD = struct.Struct("<BIqH")
 #: Layouts of the bus payloads a Y frame carries, unpacked in place by the recorder: the head
 #: of :func:`~hilswarm.agents.bus.encode_vector` (k, t) and of
-#: :func:`~hilswarm.agents.bus.encode_report` (compute_s, actuate_s, sense_s, skipped, n_u, n_x).
+#: :func:`~hilswarm.agents.bus.encode_report` (compute_s, actuate_s, sense_s, link_s, skipped,
+#: retries, n_u, n_x).
 _VECTOR = struct.Struct("<qd")
-_REPORT = struct.Struct("<dddIHH")
+_REPORT = struct.Struct("<ddddHHHH")
+#: The timing of a y frame without a report.
+_NO_TIMING = (0.0, 0.0, 0.0, 0.0, 0, 0)
 _FLOATS: dict[int, struct.Struct] = {}
 #: Y frame layouts a FrameRecorder remembers (one per frame length).
 _Y_LAYOUTS = 256
@@ -202,14 +205,16 @@ class FrameRecorder:
         # Per agent, its part of /orchestrator/ticks "agents" with "%" holes for the numbers.
         self._agent_templates = [
             quoted.replace("%", "%%")
-            + ':{"answer_s":%s,"sense_s":%s,"compute_s":%s,"actuate_s":%s,"skipped":%d}'
+            + ':{"answer_s":%s,"bus_s":%s,"compute_s":%s,"actuate_s":%s,"link_s":%s,'
+            '"sense_s":%s,"skipped":%d,"retries":%d}'
             for quoted in self._quoted
         ]
         self._y_topics = [f"/{name}/y" for name in self.names]
         self._u_topics = [f"/{name}/u" for name in self.names]
         self._x_topics = [f"/{name}/x_hat" for name in self.names]
-        # Per agent, (k, sense_s, compute_s, actuate_s, skipped) of its latest y: tick k's times.
-        self._timings: list[tuple[int, float, float, float, int] | None] = [None] * len(self.names)
+        # Per agent, (k, (compute_s, actuate_s, sense_s, link_s, skipped, retries)) of its
+        # latest y: tick k's ledger.
+        self._timings: list[tuple[int, tuple[Any, ...]] | None] = [None] * len(self.names)
         self._ticks_registered = False
         self._wall = recorder.experiment_clock  # /orchestrator/ticks carries wall_ns
         self._plain_y: set[int] = set()
@@ -309,8 +314,8 @@ class FrameRecorder:
         return False
 
     def _y(self, frame: bytes, rows: list[tuple[str, int, float, Sequence[float], int]]) -> None:
-        i, log_ns, k, t, values, sense, compute, actuate, skipped, u, x_hat = self._unpack_y(frame)
-        self._timings[i] = (k, sense, compute, actuate, skipped)
+        i, log_ns, k, t, values, timing, u, x_hat = self._unpack_y(frame)
+        self._timings[i] = (k, timing)
         if i not in self._plain_y and self._y_fields_match(i, len(values)):
             rows.append((self._y_topics[i], k, t, values, log_ns))
         else:
@@ -346,8 +351,9 @@ class FrameRecorder:
         self._plain_vector(topic, k, t, values, log_ns)
 
     def _unpack_y(self, frame: bytes) -> tuple[Any, ...]:
-        """The numbers of a Y frame: agent, log time [ns], k, t [s], y, sense_s, compute_s,
-        actuate_s, skipped, u, x_hat (the vectors as tuples of floats).
+        """The numbers of a Y frame: agent, log time [ns], k, t [s], y, the timing
+        ``(compute_s, actuate_s, sense_s, link_s, skipped, retries)``, u, x_hat (the vectors as
+        tuples of floats).
 
         Frames of one length almost always have one layout (an agent's y, u and x_hat keep
         their sizes): all numbers are unpacked at once with the layout last seen for the
@@ -360,13 +366,12 @@ class FrameRecorder:
             end_y = 7 + n_y
             if numbers[4] == _VECTOR.size + 8 * n_y:
                 if n_u < 0:  # no report
-                    return (*numbers[2:4], *numbers[5:7], numbers[7:], 0.0, 0.0, 0.0, 0, (), ())
-                if numbers[end_y + 4] == n_u and numbers[end_y + 5] == n_x:
-                    compute, actuate, sense, skipped = numbers[end_y : end_y + 4]
-                    u_end = end_y + 6 + n_u
+                    return (*numbers[2:4], *numbers[5:7], numbers[7:], _NO_TIMING, (), ())
+                if numbers[end_y + 6] == n_u and numbers[end_y + 7] == n_x:
+                    u_end = end_y + 8 + n_u
                     return (
-                        numbers[2], numbers[3], numbers[5], numbers[6], numbers[7:end_y], sense,
-                        compute, actuate, skipped, numbers[end_y + 6 : u_end], numbers[u_end:],
+                        numbers[2], numbers[3], numbers[5], numbers[6], numbers[7:end_y],
+                        numbers[end_y : end_y + 6], numbers[end_y + 8 : u_end], numbers[u_end:],
                     )  # fmt: skip
         _, _, i, log_ns, n_payload = _Y_HEAD.unpack_from(frame)
         start = _Y_HEAD.size
@@ -381,22 +386,21 @@ class FrameRecorder:
         if size:
             if size < _REPORT.size:
                 raise RecordingError(f"tick report of {size} bytes, expected >= {_REPORT.size}")
-            compute, actuate, sense, skipped, n_u, n_x = _REPORT.unpack_from(frame, report)
+            *timing, n_u, n_x = _REPORT.unpack_from(frame, report)
             if size != _REPORT.size + 8 * (n_u + n_x):
                 raise RecordingError(f"tick report of {size} bytes does not hold {n_u} + {n_x}")
             report += _REPORT.size
             u = _floats(n_u).unpack_from(frame, report)
             x_hat = _floats(n_x).unpack_from(frame, report + 8 * n_u)
-            layout = f"<BIHqIqd{n_y}ddddIHH{n_u}d{n_x}d"
+            layout = f"<BIHqIqd{n_y}dddddHHHH{n_u}d{n_x}d"
         else:
-            compute = actuate = sense = 0.0
-            skipped = 0
+            timing = _NO_TIMING
             u = x_hat = ()
             n_u = n_x = -1
             layout = f"<BIHqIqd{n_y}d"
         if len(self._y_layouts) < _Y_LAYOUTS:
             self._y_layouts[len(frame)] = (struct.Struct(layout), n_y, n_u, n_x)
-        return i, log_ns, k, t, values, sense, compute, actuate, skipped, u, x_hat
+        return i, log_ns, k, t, values, tuple(timing), u, x_hat
 
     def _plain_vector(
         self, topic: str, k: int, t: float, values: Sequence[float], log_ns: int
@@ -420,29 +424,32 @@ class FrameRecorder:
         numbers: list[float] = [k * self.dt, scheduled, send_delay, completion]
         templates = self._agent_templates
         answered: list[str] = []
-        skips: list[int] = []
+        counts: list[tuple[int, int]] = []
         timings = self._timings
         for i, answer in enumerate(answers):
             if math.isnan(answer):  # no answer
                 continue
             entry = timings[i]
             if entry is not None and entry[0] == k:
-                numbers += (answer, entry[1], entry[2], entry[3])
-                skips.append(int(entry[4]))
+                compute, actuate, sense, link, skipped, retries = entry[1]
+                # the rest of the answer time: bus delivery both ways (and, in lockstep, the
+                # wait for the neighbours' outputs)
+                bus_s = answer - (compute + actuate + sense + link)
+                numbers += (answer, bus_s, compute, actuate, link, sense)
+                counts.append((int(skipped), int(retries)))
             else:
-                numbers += (answer, math.nan, math.nan, math.nan)
-                skips.append(0)
+                numbers += (answer, math.nan, math.nan, math.nan, math.nan, math.nan)
+                counts.append((0, 0))
             answered.append(templates[i])
         texts = list(map(float.__repr__, numbers))
         if "n" in "".join(texts):
             texts = ["null" if "n" in text else text for text in texts]
         agents = ",".join(
             [
-                template % (texts[4 + 4 * j], texts[5 + 4 * j], texts[6 + 4 * j],
-                            texts[7 + 4 * j], skips[j])
+                template % (*texts[4 + 6 * j : 10 + 6 * j], *counts[j])
                 for j, template in enumerate(answered)
             ]
-        )  # fmt: skip
+        )
         wall = f'"wall_ns":{log_ns},' if self._wall else ""
         text = (
             f'{{"k":{k},"t":{texts[0]},{wall}"values":[],'

@@ -13,17 +13,18 @@ from typing import Any
 
 from hilswarm.agents.errors import LinkUrlError
 from hilswarm.agents.link.url import link_scheme
-from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.experiment import ExperimentParts
 from hilswarm.orchestrator.problems import Problem
 
 
 def check_gateway(
-    experiment: Experiment,
+    experiment: ExperimentParts,
     vehicles: Mapping[str, Any],
     problems: list[Problem],
     warnings: list[Problem],
 ) -> None:
-    """Add the problems and warnings of ``experiment``'s XBee links and gateway budget."""
+    """Add the problems and warnings of ``experiment``'s XBee links and gateway budget (of the
+    agents that loaded; the budget when ``[experiment]`` is valid)."""
     from hilswarm.agents.xbee.api_frames import FrameFamily  # noqa: PLC0415 - xbee files only
     from hilswarm.agents.xbee.budget import (  # noqa: PLC0415
         RobotTraffic,
@@ -35,7 +36,7 @@ def check_gateway(
 
     robots: list[RobotTraffic] = []
     addresses: dict[int, str] = {}
-    for spec in experiment.agents:
+    for spec in experiment.agents.values():
         if spec.link is None:
             continue
         try:
@@ -61,11 +62,14 @@ def check_gateway(
             continue  # its vehicle did not build: reported elsewhere
         request, reply = tick_frame_sizes(pins())
         robots.append(RobotTraffic(spec.name, request, reply))
-    if not robots:
+    if not robots or experiment.settings is None:
         return
     config = experiment.gateway or GatewayConfig()
     budget = gateway_budget(
-        robots, rate_hz=experiment.rate_hz, baud=config.baud, family=FrameFamily(config.family)
+        robots,
+        rate_hz=experiment.settings.rate_hz,
+        baud=config.baud,
+        family=FrameFamily(config.family),
     )
     errors, notes = budget_messages(budget)
     problems += [Problem(experiment.path, "gateway", message) for message in errors]

@@ -46,7 +46,7 @@ from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
-from urllib.parse import parse_qsl, urlencode
+from urllib.parse import parse_qsl, urlencode, urlsplit
 
 import serial
 from hilswarm.agents.errors import (
@@ -905,3 +905,39 @@ def board_from_url(url: str, **options: Any) -> SerialBoard:
             f"link URL {url!r}: {', '.join(clash)} given both in the URL and as keyword options"
         )
     return SerialBoard(url, port_url=port_url, **from_url, **options)
+
+
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check a serial link URL without opening it: options, URL syntax, and (``local``: the
+    board is plugged into this machine) that the device exists.
+
+    ``socket://`` and ``rfc2217://`` URLs are syntax-checked only (``HOST:PORT``): whether the
+    server answers is known only when the run opens it.
+
+    Raises:
+        LinkUrlError: a bad option, a network URL without host and port, a device path that
+            does not exist.
+    """
+    port_url, _ = split_url_options(url)
+    if "://" not in port_url:
+        posix_path = os.name == "posix" and port_url.startswith("/")
+        if local and posix_path and not os.path.exists(port_url):
+            from serial.tools.list_ports import comports  # noqa: PLC0415 - only on this error
+
+            present = sorted(port.device for port in comports())
+            raise LinkUrlError(
+                f"serial device {port_url!r} does not exist (is the board plugged in?); "
+                + (f"serial ports present: {', '.join(present)}" if present else "no serial ports")
+            )
+        return
+    parts = urlsplit(port_url)
+    scheme = parts.scheme.lower()
+    if scheme in ("socket", "rfc2217"):
+        try:
+            port = parts.port
+        except ValueError:
+            port = None
+        if not parts.hostname or port is None or not 0 < port < 65536:
+            raise LinkUrlError(
+                f"link URL {url!r}: expected {scheme}://HOST:PORT with a port 1-65535"
+            )

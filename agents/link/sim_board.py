@@ -49,7 +49,7 @@ from hilswarm.agents.link.board import (
     TickReply,
     pin_name,
 )
-from hilswarm.agents.pins import BoardProfile, get_profile, parse_pin, value_range
+from hilswarm.agents.pins import PROFILES, BoardProfile, get_profile, parse_pin, value_range
 
 logger = logging.getLogger(__name__)
 
@@ -595,10 +595,8 @@ _MODE_NEEDS: dict[PinMode, Capability] = {
 }
 
 
-def board_from_url(url: str, **options: Any) -> SimBoard:
-    """Build a :class:`SimBoard` from ``sim://[profile][?board_id=N]``.
-
-    ``options`` go to :class:`SimBoard` (``plant=``, ``dt=``, ...).
+def parse_url(url: str) -> tuple[str, dict[str, Any]]:
+    """Parse ``sim://[profile][?board_id=N]`` into ``(profile, options)`` without building.
 
     Raises:
         LinkUrlError: wrong scheme, unknown profile or query key, bad board id.
@@ -607,20 +605,39 @@ def board_from_url(url: str, **options: Any) -> SimBoard:
     if parts.scheme.lower() != "sim":
         raise LinkUrlError(f"{url!r} is not a sim:// URL")
     profile = (parts.netloc or parts.path.strip("/") or "uno").lower()
-    query: dict[str, str] = {}
+    if profile not in PROFILES:
+        raise LinkUrlError(
+            f"{url!r}: unknown board profile {profile!r}; known: {', '.join(sorted(PROFILES))}"
+        )
+    options: dict[str, Any] = {}
     for key, value in parse_qsl(parts.query, keep_blank_values=True):
         if key != "board_id":
             raise LinkUrlError(f"{url!r}: unknown option {key!r} (known: board_id)")
-        if key in query:
+        if key in options:
             raise LinkUrlError(f"{url!r}: option {key!r} given twice")
-        query[key] = value
-    if "board_id" in query:
-        if "board_id" in options:
-            raise LinkUrlError(f"{url!r}: board_id given both in the URL and as an option")
-        text = query["board_id"]
-        if not text.isdigit() or not 0 <= int(text) <= 0xFFFF:
-            raise LinkUrlError(f"{url!r}: board_id must be an integer 0-65535, got {text!r}")
-        options["board_id"] = int(text)
+        if not value.isdigit() or not 0 <= int(value) <= 0xFFFF:
+            raise LinkUrlError(f"{url!r}: board_id must be an integer 0-65535, got {value!r}")
+        options[key] = int(value)
+    return profile, options
+
+
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check ``url`` as :func:`board_from_url` would (``local`` changes nothing here)."""
+    del local
+    parse_url(url)
+
+
+def board_from_url(url: str, **options: Any) -> SimBoard:
+    """Build a :class:`SimBoard` from ``sim://[profile][?board_id=N]``.
+
+    ``options`` go to :class:`SimBoard` (``plant=``, ``dt=``, ...).
+
+    Raises:
+        LinkUrlError: wrong scheme, unknown profile or query key, bad board id.
+    """
+    profile, from_url = parse_url(url)
+    if "board_id" in from_url and "board_id" in options:
+        raise LinkUrlError(f"{url!r}: board_id given both in the URL and as an option")
     if "profile" in options:
         raise LinkUrlError(f"{url!r}: give the profile in the URL (sim://<profile>), not as option")
-    return SimBoard(profile, url=url, **options)
+    return SimBoard(profile, url=url, **from_url, **options)

@@ -534,14 +534,11 @@ class SimavrBoard(Board):
         return f"SimavrBoard({self.profile!r}, paced={self.paced}, url={self.url!r})"
 
 
-def board_from_url(url: str, **options: Any) -> SimavrBoard:
-    """Build a :class:`SimavrBoard` from ``simavr://[uno|duemilanove|fio][?paced=1&board_id=N]``.
-
-    ``options`` go to :class:`SimavrBoard` (``plant=``, ``dt=``, serial options).
+def parse_url(url: str) -> tuple[str, dict[str, Any]]:
+    """Parse ``simavr://[uno|duemilanove|fio][?paced=1&board_id=N]`` into ``(profile, options)``.
 
     Raises:
         LinkUrlError: wrong scheme, unknown profile or option, bad value.
-        SimulatorError: the firmware or harness is not built.
     """
     parts = urlsplit(url)
     if parts.scheme.lower() != "simavr":
@@ -552,9 +549,8 @@ def board_from_url(url: str, **options: Any) -> SimavrBoard:
             f"{url!r}: unknown board profile {profile!r}; known: "
             f"{', '.join(sorted(SIMAVR_PROFILES))}"
         )
+    options: dict[str, Any] = {}
     for key, value in parse_qsl(parts.query, keep_blank_values=True):
-        if key in options:
-            raise LinkUrlError(f"{url!r}: {key} given both in the URL and as an option")
         if key == "paced":
             if value not in ("0", "1", "true", "false"):
                 raise LinkUrlError(f"{url!r}: paced must be 0 or 1, got {value!r}")
@@ -565,4 +561,36 @@ def board_from_url(url: str, **options: Any) -> SimavrBoard:
             options["board_id"] = int(value)
         else:
             raise LinkUrlError(f"{url!r}: unknown option {key!r} (known: paced, board_id)")
-    return SimavrBoard(profile, url=url, **options)
+    return profile, options
+
+
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check ``url`` as :func:`board_from_url` would, and (``local``: the board runs on this
+    machine) that its firmware is built.
+
+    Raises:
+        LinkUrlError: a bad URL, or the firmware/harness of its profile is not built.
+    """
+    profile, _ = parse_url(url)
+    if not local:
+        return
+    try:
+        locate_build(profile)
+    except SimulatorError as exc:
+        raise LinkUrlError(f"{url!r}: {exc}") from None
+
+
+def board_from_url(url: str, **options: Any) -> SimavrBoard:
+    """Build a :class:`SimavrBoard` from ``simavr://[uno|duemilanove|fio][?paced=1&board_id=N]``.
+
+    ``options`` go to :class:`SimavrBoard` (``plant=``, ``dt=``, serial options).
+
+    Raises:
+        LinkUrlError: wrong scheme, unknown profile or option, bad value.
+        SimulatorError: the firmware or harness is not built.
+    """
+    profile, from_url = parse_url(url)
+    clash = sorted(set(from_url) & set(options))
+    if clash:
+        raise LinkUrlError(f"{url!r}: {', '.join(clash)} given both in the URL and as an option")
+    return SimavrBoard(profile, url=url, **from_url, **options)

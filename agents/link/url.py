@@ -33,6 +33,13 @@ _SCHEMES: dict[str, str] = {
 }
 #: pyserial URL schemes (and bare device paths) go to the serial transport.
 _SERIAL_FACTORY = "hilswarm.agents.link.serial_board:board_from_url"
+#: kind -> "module:function" checking a URL of that kind completely without opening anything.
+_VALIDATORS: dict[str, str] = {
+    "sim": "hilswarm.agents.link.sim_board:validate_url",
+    "simavr": "hilswarm.agents.link.simavr:validate_url",
+    "serial": "hilswarm.agents.link.serial_board:validate_url",
+    "xbee": "hilswarm.agents.xbee.config:validate_url",
+}
 _PYSERIAL_SCHEMES = {"loop", "socket", "rfc2217", "spy", "alt", "hwgrep", "cp2110"}
 
 
@@ -71,11 +78,29 @@ def is_simulated(url: str) -> bool:
     return kind in ("sim", "simavr")
 
 
-def _load(target: str) -> BoardFactory:
+def validate_link_url(url: str, *, local: bool = True) -> str:
+    """Check ``url`` as far as possible without opening it; return its kind (:func:`link_scheme`).
+
+    Beyond the scheme: the board profile and query options (``sim://mega`` is refused), a
+    serial device path exists, ``socket://`` / ``rfc2217://`` have ``HOST:PORT``, the firmware of
+    a ``simavr://`` profile is built. The transports use the same parsers when they open.
+    ``local=False`` (the board is on another machine, e.g. ``hilswarm run --remote``) skips
+    what only that machine can know: the device and the firmware build.
+
+    Raises:
+        LinkUrlError: what is wrong with ``url``.
+    """
+    kind = link_scheme(url)
+    validator = _VALIDATORS.get(kind)
+    if validator is not None:
+        _load(validator)(url.strip(), local=local)
+    return kind
+
+
+def _load(target: str) -> Callable[..., Any]:
     module_name, _, attr = target.partition(":")
     module = importlib.import_module(module_name)
-    factory: BoardFactory = getattr(module, attr)
-    return factory
+    return getattr(module, attr)  # type: ignore[no-any-return]
 
 
 def board_for_url(url: str, **options: Any) -> Board:
@@ -86,4 +111,5 @@ def board_for_url(url: str, **options: Any) -> Board:
     """
     kind = link_scheme(url)
     target = _SERIAL_FACTORY if kind == "serial" else _SCHEMES[kind]
-    return _load(target)(url, **options)
+    factory: BoardFactory = _load(target)
+    return factory(url, **options)

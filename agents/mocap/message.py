@@ -24,6 +24,7 @@ Poses are ``[x, y, z (m), roll, pitch, yaw (rad)]`` in the world frame
 
 from __future__ import annotations
 
+import math
 import struct
 import time
 from dataclasses import dataclass
@@ -108,13 +109,16 @@ def decode(payload: bytes | bytearray | memoryview) -> BodyPose:
     )
 
 
-def encode_truth(pose: np.ndarray) -> bytes:
-    """A simulated body's true world pose (6 float64) for the simulator."""
-    return struct.pack("<6d", *np.asarray(pose, dtype=np.float64).reshape(6).tolist())
+def encode_truth(pose: np.ndarray, t: float = math.nan) -> bytes:
+    """A simulated body's true world pose (6 float64) and the experiment time ``t`` [s] it
+    holds for (NaN: before the run), for the simulator; 56 bytes."""
+    values = np.asarray(pose, dtype=np.float64).reshape(6).tolist()
+    return struct.pack("<7d", *values, float(t))
 
 
-def decode_truth(payload: bytes | bytearray | memoryview) -> np.ndarray:
-    """Inverse of :func:`encode_truth` (raises :class:`BusMessageError`)."""
-    if len(payload) != 48:
-        raise BusMessageError(f"mocap truth message must be 48 bytes, got {len(payload)}")
-    return np.frombuffer(bytes(payload), dtype="<f8").copy()
+def decode_truth(payload: bytes | bytearray | memoryview) -> tuple[np.ndarray, float]:
+    """Inverse of :func:`encode_truth`: ``(pose, t)`` (raises :class:`BusMessageError`)."""
+    if len(payload) != 56:
+        raise BusMessageError(f"mocap truth message must be 56 bytes, got {len(payload)}")
+    values = np.frombuffer(bytes(payload), dtype="<f8").copy()
+    return values[:6], float(values[6])

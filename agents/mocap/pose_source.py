@@ -18,7 +18,8 @@ A controller that ``uses_neighbour_poses`` also gets its graph neighbours' bodie
 (:meth:`MocapPoseSource.neighbour_poses`; each an explicit key, nothing else is received).
 
 With ``system = "sim"`` it also publishes its simulated plant's true world pose on
-``mocap_truth/<body>`` at each sense (and once at start) — what the simulated cameras see.
+``mocap_truth/<body>`` after each sense, with the tick's experiment time (and at start, with
+none) — what the simulated cameras see.
 
 Per tick it appends to the vehicle's telemetry channel ``mocap`` (:data:`TELEMETRY_FIELDS`):
 frame number, frame time [s], latency frame time -> this sense [s] (same host only), frames
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -203,14 +205,14 @@ class MocapPoseSource:
 
     # -- per tick ----------------------------------------------------------------------------
 
-    def _publish_truth(self) -> None:
+    def _publish_truth(self, t: float = math.nan) -> None:
         publisher, plant = self._truth_pub, self._truth
         if publisher is None or plant is None:
             return
         pose = np.asarray(plant.pose(), dtype=np.float64).reshape(6)
         if getattr(plant, "pose_frame", "world") == "ned":
             pose = world_to_ned(pose)  # its own inverse: NED -> world
-        publisher.put(message.encode_truth(pose))
+        publisher.put(message.encode_truth(pose, t))
 
     def lost(self) -> str | None:
         """Why tracking is lost now, or ``None`` while the pose may be used."""
@@ -241,7 +243,6 @@ class MocapPoseSource:
 
     def pose(self) -> np.ndarray:
         """The body's pose ``[x, y, z (m), roll, pitch, yaw (rad)]`` (world frame), or NaN."""
-        self._publish_truth()
         reason = self.lost_reason or self.lost()
         row = self._row
         if reason is not None:
@@ -275,6 +276,9 @@ class MocapPoseSource:
         return p.copy()
 
     def record(self, k: int, t: float) -> None:
-        """Append this tick's row to the ``mocap`` telemetry channel (the vehicle calls it)."""
+        """After the sense of tick ``k`` at experiment time ``t`` [s] (the vehicle calls it):
+        append the tick's row to the ``mocap`` telemetry channel and, with the simulator,
+        publish the plant's true pose of time ``t`` (the next camera frames measure it)."""
+        self._publish_truth(t)
         if self._channel is not None:
             self._channel.append(k, t, self._row)

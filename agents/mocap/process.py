@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 import zenoh
 from hilswarm.agents import bus
+from hilswarm.agents.credentials import add_credentials_arguments, bus_access_from_args
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.mocap import message
 from hilswarm.agents.mocap.clients import (
@@ -72,6 +73,8 @@ class MocapProcess:
         experiment: experiment name (key prefix).
         bodies: the experiment's bodies (one per agent).
         endpoints: Zenoh endpoints (the orchestrator's router).
+        run_id: the run's id (key prefix).
+        security: the mocap principal's credentials (``None``: none).
         client: the system's client (default: :func:`~.clients.make_client`).
         clock: monotonic clock [s].
     """
@@ -83,11 +86,14 @@ class MocapProcess:
         bodies: Sequence[str],
         endpoints: Sequence[str],
         *,
+        run_id: str = "",
+        security: bus.SessionSecurity | None = None,
         client: MocapClient | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.settings = settings
-        self.keys = bus.BusKeys(experiment)
+        self.keys = bus.BusKeys(experiment, run_id)
+        self._security = security
         self.bodies = tuple(bus.check_key_name(b, what="mocap body") for b in bodies)
         self.endpoints = list(endpoints)
         self.client = client or make_client(
@@ -179,7 +185,7 @@ class MocapProcess:
 
     def run(self) -> int:
         """Run until stopped (0) or the server is lost (1); cannot connect: 2."""
-        session = bus.open_session(bus.client_config(self.endpoints))
+        session = bus.open_session(bus.client_config(self.endpoints, security=self._security))
         entities: list[Any] = []
         try:
             for name in self.bodies:
@@ -215,11 +221,12 @@ class MocapProcess:
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m hilswarm.agents.mocap.process`` (see the module docstring)."""
     parser = argparse.ArgumentParser(prog="python -m hilswarm.agents.mocap.process")
-    parser.add_argument("--connect", action="append", required=True, help="Zenoh endpoint")
+    parser.add_argument("--connect", action="append", default=[], help="Zenoh endpoint")
     parser.add_argument("--experiment", required=True, help="experiment name (key prefix)")
     parser.add_argument("--bodies", required=True, help="comma-separated rigid body names")
     parser.add_argument("--settings", required=True, help="[mocap] as JSON")
     parser.add_argument("--port", type=int, default=None, help="override the server's port")
+    add_credentials_arguments(parser)
     parser.add_argument("-v", "--verbose", action="count", default=0)
     args = parser.parse_args(argv)
     logging.basicConfig(
@@ -231,8 +238,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.port is not None:
             data["port"] = args.port
         settings = MocapSettings.from_dict(data)
+        endpoints, run_id, security = bus_access_from_args(args)
         process = MocapProcess(
-            settings, args.experiment, [b for b in args.bodies.split(",") if b], args.connect
+            settings,
+            args.experiment,
+            [b for b in args.bodies.split(",") if b],
+            endpoints,
+            run_id=run_id,
+            security=security,
         )
     except (ValueError, TypeError, HilswarmError) as exc:
         logger.error("bad arguments: %s", exc)

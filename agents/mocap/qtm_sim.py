@@ -80,8 +80,9 @@ class SimSettings:
         latency_s: exposure -> packet sent [s].
         dropout_rate: probability per body and frame that an occlusion starts.
         dropout_frames: length of a random occlusion [frames].
-        occlusions: scripted occlusions, body -> ``(start_s, end_s)`` counted from the first
-            frame that has the body's true pose (the moment its plant started).
+        occlusions: scripted occlusions, body -> ``(start_s, end_s)``: in experiment time
+            when the true poses carry it (the agents' plants), else counted from the first
+            frame that has the body's true pose.
         seed: seed of the noise and dropout generator.
     """
 
@@ -304,6 +305,7 @@ class QtmSimulator:
         self._rng = np.random.default_rng(settings.seed)
         self._occluded_until = dict.fromkeys(settings.bodies, -1)
         self._appeared: dict[str, float] = {}  # body -> elapsed time of its first truth [s]
+        self._truth_t: dict[str, float] = {}  # body -> experiment time of its truth [s]
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._started = threading.Event()
@@ -312,10 +314,19 @@ class QtmSimulator:
 
     # -- feeding -----------------------------------------------------------------------------
 
-    def set_truth(self, body: str, pose: np.ndarray) -> None:
-        """The true world pose of ``body`` (thread-safe; the next frame measures it)."""
+    def set_truth(self, body: str, pose: np.ndarray, *, t: float | None = None) -> None:
+        """The true world pose of ``body`` (thread-safe; the next frame measures it).
+
+        Args:
+            body: the rigid body.
+            pose: ``[x, y, z (m), roll, pitch, yaw (rad)]``, world frame.
+            t: the experiment time it holds for [s] (scripted occlusions follow it); ``None``
+                or NaN: no experiment time (before the run, or a free-running feed).
+        """
         if body in self._occluded_until:
             self._truth[body] = np.asarray(pose, dtype=np.float64).reshape(6).copy()
+            if t is not None:
+                self._truth_t[body] = t
 
     # -- life cycle --------------------------------------------------------------------------
 
@@ -420,6 +431,8 @@ class QtmSimulator:
         window = self.settings.occlusions.get(name)
         if window is not None and name in self._truth:
             since = elapsed_s - self._appeared.setdefault(name, elapsed_s)
+            if name in self._truth_t:  # experiment time (NaN before the run: never occluded)
+                since = self._truth_t[name]
             if window[0] <= since < window[1]:
                 return True
         if self.settings.dropout_rate:

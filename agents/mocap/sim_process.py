@@ -22,6 +22,7 @@ from typing import Any
 
 import zenoh
 from hilswarm.agents import bus
+from hilswarm.agents.credentials import add_credentials_arguments, bus_access_from_args
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.mocap import message
 from hilswarm.agents.mocap.config import MocapSettings
@@ -53,6 +54,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--experiment", required=True)
     parser.add_argument("--bodies", required=True, help="comma-separated rigid body names")
     parser.add_argument("--settings", required=True, help="[mocap] as JSON")
+    add_credentials_arguments(parser)
     parser.add_argument("--seed", type=int, default=None, help="the experiment's seed")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s mocap-sim: %(message)s")
@@ -67,8 +69,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         settings = MocapSettings.from_dict(json.loads(args.settings))
         bodies = [b for b in args.bodies.split(",") if b]
         simulator = QtmSimulator(sim_settings(settings, bodies, args.seed))
-        keys = bus.BusKeys(args.experiment)
-        session = bus.open_session(bus.client_config(args.connect))
+        endpoints, run_id, security = bus_access_from_args(args)
+        keys = bus.BusKeys(args.experiment, run_id)
+        session = bus.open_session(bus.client_config(endpoints, security=security))
     except (ValueError, TypeError, HilswarmError) as exc:
         logger.error("cannot start: %s", exc)
         return 2
@@ -78,7 +81,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             def on_truth(sample: zenoh.Sample, body: str = body) -> None:
                 try:
-                    simulator.set_truth(body, message.decode_truth(sample.payload.to_bytes()))
+                    pose, t = message.decode_truth(sample.payload.to_bytes())
+                    simulator.set_truth(body, pose, t=t)
                 except bus.BusMessageError as exc:
                     logger.warning("body %s: %s", body, exc)
 

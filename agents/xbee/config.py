@@ -161,6 +161,19 @@ def parse_xbee_url(url: str) -> XBeeLink:
     return XBeeLink(address, sim, tuple(options))
 
 
+def validate_url(url: str, *, local: bool = True) -> None:
+    """Check an ``xbee://`` URL as the transport would, and its ``sim=`` board URL.
+
+    Raises:
+        LinkUrlError: a bad address, option or simulated board URL.
+    """
+    from hilswarm.agents.link.url import validate_link_url  # noqa: PLC0415 - url imports us
+
+    link = parse_xbee_url(url)
+    if link.sim is not None:
+        validate_link_url(link.sim, local=local)
+
+
 def format_address(address: int) -> str:
     """``0x0013A20040A1B2C3`` -> ``"0013A20040A1B2C3"``."""
     return f"{address:016X}"

@@ -241,6 +241,12 @@ class Gateway:
         if hv is None:  # perhaps the radio is in the other API mode: switch it to ours
             self._set_api_mode()
             hv = self._at_query("HV")
+        ap = self._at_query("AP")  # frames without escapable bytes read alike in modes 1 and 2
+        if ap is not None and ap.value[:1] != bytes((int(self._mode),)):
+            _log.info("coordinator is in API mode %s; setting AP=%d", ap.value.hex(), self._mode)
+            self._write_frame(AtCommand(0xF1, "AP", bytes((int(self._mode),))))
+            self._write_frame(AtCommand(0xF2, "WR"))
+            self._at_query("AP")
         vr = self._at_query("VR")
         if hv is None or vr is None:
             raise GatewayError(

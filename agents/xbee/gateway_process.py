@@ -26,6 +26,7 @@ from types import FrameType
 from typing import Any
 
 from hilswarm.agents import bus
+from hilswarm.agents.credentials import add_credentials_arguments, bus_access_from_args
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.link.url import link_scheme
 from hilswarm.agents.xbee.air import Air
@@ -97,11 +98,25 @@ def plan_for(experiment: Any) -> GatewayPlan | None:
     )
 
 
-def serve(plan: GatewayPlan, endpoints: Sequence[str], stop: threading.Event) -> int:
-    """Run the gateway of ``plan`` until ``stop`` is set; return the exit status."""
+def serve(
+    plan: GatewayPlan,
+    endpoints: Sequence[str],
+    stop: threading.Event,
+    *,
+    run_id: str = "",
+    security: bus.SessionSecurity | None = None,
+) -> int:
+    """Run the gateway of ``plan`` until ``stop`` is set; return the exit status.
+
+    ``run_id`` and ``security``: the run's id and the gateway principal's credentials.
+    """
     config = GatewayConfig(**plan.config)
-    keys = bus.BusKeys(plan.experiment)
-    session = bus.open_session(bus.client_config(endpoints))
+    keys = bus.BusKeys(plan.experiment, run_id)
+    try:
+        session = bus.open_session(bus.client_config(endpoints, security=security))
+    except bus.BusConnectionError as exc:
+        sys.stderr.write(f"hilswarm gateway: {exc}\n")
+        return 1
     coordinator: SimCoordinator | None = None
     faults: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
     try:
@@ -132,7 +147,7 @@ def serve(plan: GatewayPlan, endpoints: Sequence[str], stop: threading.Event) ->
             stop.wait()
         return 0
     except HilswarmError as exc:
-        _log.error("the gateway failed: %s", exc)
+        _log.debug("the gateway failed: %s", exc)
         sys.stderr.write(f"hilswarm gateway: {exc}\n")
         return 1
     finally:
@@ -166,7 +181,8 @@ def _apply_faults(
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m hilswarm.agents.xbee.gateway_process``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--connect", action="append", required=True, metavar="ENDPOINT")
+    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT")
+    add_credentials_arguments(parser)
     parser.add_argument("--plan", required=True, help="GatewayPlan as JSON")
     parser.add_argument("-v", "--verbose", action="count", default=0)
     args = parser.parse_args(argv)
@@ -181,7 +197,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, on_signal)
-    return serve(GatewayPlan.from_json(args.plan), args.connect, stop)
+    endpoints, run_id, security = bus_access_from_args(args)
+    return serve(
+        GatewayPlan.from_json(args.plan), endpoints, stop, run_id=run_id, security=security
+    )
 
 
 if __name__ == "__main__":

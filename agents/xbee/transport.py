@@ -152,6 +152,7 @@ class XBeeBoard(SerialBoard):
         keys: the experiment's bus keys.
         agent: the agent's name.
         endpoints: bus endpoints to open the link's session with.
+        security: the agent's credentials for that session (``None``: none).
         session: use this session instead (not closed by the board; for tests and tools that
             do not exchange from a bus callback).
         sim: the simulated robot's board URL, or ``None``.
@@ -167,6 +168,7 @@ class XBeeBoard(SerialBoard):
         keys: bus.BusKeys,
         agent: str,
         endpoints: list[str] | None = None,
+        security: bus.SessionSecurity | None = None,
         session: zenoh.Session | None = None,
         sim: str | None = None,
         plant: Any | None = None,
@@ -177,6 +179,7 @@ class XBeeBoard(SerialBoard):
         self.keys = keys
         self.agent = agent
         self.endpoints = list(endpoints or [])
+        self.security = security
         self.session = session
         self._own_session = session is None
         self.sim = sim
@@ -197,7 +200,9 @@ class XBeeBoard(SerialBoard):
         if self.session is None:
             if not self.endpoints:
                 raise BoardConnectionError(f"{self.url}: no bus endpoint to reach the gateway")
-            self.session = bus.open_session(bus.client_config(self.endpoints))
+            self.session = bus.open_session(
+                bus.client_config(self.endpoints, security=self.security)
+            )
         return self.session
 
     def open(self) -> BoardInfo:
@@ -241,6 +246,8 @@ def board_from_url(
     endpoints: list[str] | None = None,
     session: zenoh.Session | None = None,
     experiment: str | None = None,
+    run_id: str = "",
+    security: bus.SessionSecurity | None = None,
     agent: str | None = None,
     plant: Any | None = None,
     dt: float | None = None,
@@ -267,9 +274,10 @@ def board_from_url(
     }
     return XBeeBoard(
         url,
-        keys=bus.BusKeys(experiment),
+        keys=bus.BusKeys(experiment, run_id),
         agent=agent,
         endpoints=endpoints,
+        security=security,
         session=session,
         sim=link.sim,
         plant=plant,

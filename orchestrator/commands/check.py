@@ -2,23 +2,36 @@
 
 Prints every problem as ``file:key: reason`` and exits 2 when there is any; otherwise prints a
 short summary (agents, rate, ticks, graph facts) and any warnings, and exits 0.
+
+``hilswarm check --schema [PATH]`` prints (or writes to PATH) the JSON Schema of experiment
+files, generated from :mod:`hilswarm.orchestrator.schema`, for editors (taplo, VS Code).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from hilswarm.orchestrator.checks import CheckReport, check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 
 HELP = "validate an experiment file without starting anything"
+#: Agents listed one per line in the summary of a valid file (a large swarm gets a count).
+SUMMARY_AGENTS = 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``hilswarm check``."""
-    parser.add_argument("file", help="experiment file (TOML)")
+    parser.add_argument("file", nargs="?", help="experiment file (TOML)")
     add_override_arguments(parser)
+    parser.add_argument(
+        "--schema",
+        nargs="?",
+        const="-",
+        metavar="PATH",
+        help="print the JSON Schema of experiment files (or write it to PATH) and exit",
+    )
     parser.add_argument(
         "--strict", action="store_true", help="treat warnings as problems (exit 2 on any)"
     )
@@ -26,7 +39,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Check ``args.file``; 0 when valid, 2 when there are problems."""
-    report = check_file(args.file, overrides=overrides_from_args(args))
+    if args.schema is not None:
+        return write_schema(args.schema)
+    if args.file is None:
+        print("hilswarm check: give an experiment file (or --schema)", file=sys.stderr)
+        return 2
+    report = check_file(args.file, overrides=overrides_from_args(args), max_agents=args.max_agents)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     if report.problems or (args.strict and report.warnings):
@@ -60,10 +78,33 @@ def summary(report: CheckReport) -> str:
             tree = "no spanning tree"
         lines.append(
             f"graph: {facts.n_edges} edges, "
-            f"{'connected' if facts.weakly_connected else 'NOT connected'}, {tree}, "
-            f"lambda_2 = {facts.algebraic_connectivity:.4g}"
+            f"{'connected' if facts.weakly_connected else 'NOT connected'}, {tree}"
+            + (
+                f", lambda_2 = {facts.algebraic_connectivity:.4g}"
+                if facts.algebraic_connectivity is not None
+                else ""
+            )
         )
-    for spec in experiment.agents:
+    for spec in experiment.agents[:SUMMARY_AGENTS]:
         link = spec.link or "(no board)"
         lines.append(f"  {spec.name}: {spec.vehicle} via {link}, controller {spec.controller}")
+    if len(experiment.agents) > SUMMARY_AGENTS:
+        lines.append(f"  ... and {len(experiment.agents) - SUMMARY_AGENTS} more agents")
     return "\n".join(lines)
+
+
+def write_schema(target: str) -> int:
+    """Print the JSON Schema (``target`` ``"-"``) or write it to the file ``target``."""
+    from hilswarm.orchestrator.schema import json_schema_text  # noqa: PLC0415 - only here
+
+    text = json_schema_text()
+    if target == "-":
+        sys.stdout.write(text)
+        return 0
+    try:
+        Path(target).write_text(text, encoding="utf-8")
+    except OSError as exc:
+        print(f"hilswarm check: cannot write {target}: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {target}")
+    return 0

@@ -6,7 +6,7 @@ import argparse
 import json
 import sys
 
-from hilswarm.orchestrator.experiment import parse_experiment
+from hilswarm.orchestrator.experiment import DEFAULT_MAX_AGENTS, parse_experiment
 from hilswarm.orchestrator.graph_facts import graph_facts
 
 HELP = "show graph facts (connectivity, degrees, algebraic connectivity)"
@@ -19,11 +19,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--matrix", action="store_true", help="also print the adjacency matrix (rows receive)"
     )
+    parser.add_argument(
+        "--max-agents",
+        type=int,
+        default=DEFAULT_MAX_AGENTS,
+        metavar="N",
+        help=f"accept up to N agents (default {DEFAULT_MAX_AGENTS})",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     """Print the graph facts of ``args.file``; 2 when the file has problems."""
-    experiment, problems = parse_experiment(args.file)
+    experiment, problems = parse_experiment(args.file, max_agents=args.max_agents)
     if experiment is None:
         for problem in problems:
             print(problem, file=sys.stderr)

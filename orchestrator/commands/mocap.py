@@ -24,13 +24,13 @@ from pathlib import Path
 import numpy as np
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.mocap.clients import MocapConnectionError, MocapServerLost, QualisysClient
-from hilswarm.agents.mocap.config import MocapSettings, parse_mocap
+from hilswarm.agents.mocap.config import MocapSettings
 from hilswarm.agents.mocap.frames import SYSTEMS, world_to_ned
 from hilswarm.agents.mocap.probe import DEFAULT_PROBE_S, ProbeResult, probe
 from hilswarm.agents.mocap.qtm_sim import QtmSimulator
 from hilswarm.agents.mocap.sim_process import sim_settings
 from hilswarm.agents.registry import resolve_vehicle
-from hilswarm.orchestrator.experiment import Experiment, load_experiment
+from hilswarm.orchestrator.experiment import Experiment, load_experiment, mocap_settings
 
 HELP = "list the bodies a mocap system sees, with rate and position"
 
@@ -63,9 +63,9 @@ def _settings(args: argparse.Namespace) -> tuple[MocapSettings, Experiment | Non
         table["port"] = args.port
     if args.up_axis is not None:
         table["up_axis"] = args.up_axis
-    settings, problems = parse_mocap(table)
+    settings, problems = mocap_settings(table, file="command line", where="")
     if settings is None:
-        raise _BadInputError("; ".join(f"{key}: {message}" for key, message in problems))
+        raise _BadInputError("; ".join(f"{p.key}: {p.message}" for p in problems))
     return settings, None
 
 

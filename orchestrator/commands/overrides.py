@@ -5,11 +5,12 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from hilswarm.orchestrator.experiment import parse_link_overrides
+from hilswarm.orchestrator.experiment import DEFAULT_MAX_AGENTS, parse_link_overrides
 
 
 def add_override_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--mode``, ``--duration``, ``--rate`` and ``--link NAME=URL`` (repeatable)."""
+    """Add ``--mode``, ``--duration``, ``--rate``, ``--link NAME=URL`` (repeatable) and
+    ``--max-agents N``."""
     parser.add_argument("--mode", choices=("lockstep", "realtime"), help="override the mode")
     parser.add_argument("--duration", type=float, metavar="SECONDS", help="override duration_s [s]")
     parser.add_argument("--rate", type=float, metavar="HZ", help="override rate_hz [Hz]")
@@ -19,6 +20,13 @@ def add_override_arguments(parser: argparse.ArgumentParser) -> None:
         default=[],
         metavar="NAME=URL",
         help="override an agent's link, e.g. --link leader=/dev/ttyUSB0 (repeatable)",
+    )
+    parser.add_argument(
+        "--max-agents",
+        type=int,
+        default=DEFAULT_MAX_AGENTS,
+        metavar="N",
+        help=f"accept up to N agents (default {DEFAULT_MAX_AGENTS}; one process per agent)",
     )
 
 

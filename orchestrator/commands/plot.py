@@ -1,10 +1,12 @@
-"""``hilswarm plot FILE --out DIR``: PNG plots of a run recording."""
+"""``hilswarm plot FILE --out DIR``: PNG plots of a run recording.
+
+Exit status: 0 plots written, 1 nothing plottable in the file, 2 bad input (missing file, an
+unknown ``--agent`` or ``--field``, a bad ``--xy``: the message lists the valid names).
+"""
 
 from __future__ import annotations
 
 import argparse
-
-from hilswarm.agents.errors import RecordingError
 
 HELP = "write PNG plots of a recording"
 
@@ -19,18 +21,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--xy",
         default="0,1",
         metavar="I,J",
-        help="entries of y that are the x and y position for the path plot (default 0,1)",
+        help="entries of y that are the x and y position for the path plot, by index or name "
+        "(default 0,1; e.g. x,y)",
     )
     parser.add_argument(
         "--agent", action="append", default=None, help="only this agent (repeatable)"
     )
+    parser.add_argument(
+        "--field",
+        action="append",
+        default=None,
+        help="only this entry of y or u, by name (repeatable), e.g. --field psi",
+    )
+    parser.add_argument(
+        "--latency",
+        action="store_true",
+        help="also latency.png: where each tick's time went (controller, apply, board link, "
+        "sense, bus), per agent",
+    )
 
 
-def _indices(text: str) -> tuple[int, int]:
-    parts = text.split(",")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise RecordingError(f"--xy must be two indices like 0,1, got {text!r}")
-    return int(parts[0]), int(parts[1])
+def _xy(text: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in text.split(","))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -40,7 +52,14 @@ def run(args: argparse.Namespace) -> int:
     from hilswarm.orchestrator.plotting import plot_recording  # noqa: PLC0415 - matplotlib
 
     out = Path(args.out) if args.out else Path(args.file).with_name(f"{Path(args.file).stem}_plots")
-    written = plot_recording(args.file, out, xy=_indices(args.xy), agents=args.agent)
+    written = plot_recording(
+        args.file,
+        out,
+        xy=_xy(args.xy),
+        agents=args.agent,
+        fields=args.field,
+        latency=args.latency,
+    )
     if not written:
         print(f"no plottable data in {args.file}")
         return 1

@@ -7,6 +7,12 @@ Example::
     hilswarm run graphs/consensus_ring.toml --out out/ring.mcap --duration 5
     hilswarm run graphs/lead_follow.toml --mode realtime --live      # watch it in Foxglove
 
+Every run has a bus of its own: the embedded router binds a free loopback port (printed, and
+listed by ``hilswarm ps``), every key carries a fresh run id, and every process authenticates
+with credentials made for this run; the router's access control lets each one do only its job
+(docs/security.md). ``--listen tls/0.0.0.0:PORT`` adds a TLS endpoint for agents on other
+machines (``--remote NAME``, joined with ``hilswarm agent --credentials FILE``).
+
 Ctrl-C (or ``hilswarm stop EXP`` from another terminal) brings every agent to safe mode, stops
 it, and closes the recording properly. Exit status: 0 completed or stopped on request, 1 the
 run failed (an agent lost with ``on_agent_loss = "stop"``, start-up failure), 2 bad input,
@@ -17,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import secrets
 import signal
 import sys
 import time
@@ -25,6 +32,7 @@ from types import FrameType
 
 from hilswarm.agents import bus
 from hilswarm.agents.errors import RecordingError
+from hilswarm.orchestrator.bus_access import GATEWAY, MOCAP, VIEWER
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
@@ -38,8 +46,10 @@ from hilswarm.orchestrator.manager import (
 )
 from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.run_registry import RunEntry, RunRecord
+from hilswarm.orchestrator.run_security import RunSecurity, is_loopback
 from hilswarm.orchestrator.run_summary import RunSummary
-from hilswarm.orchestrator.status_display import StatusDisplay
+from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
 
 HELP = "run an experiment file (one process per agent, recorded to MCAP)"
 
@@ -56,13 +66,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="ENDPOINT",
-        help="join an existing Zenoh router (e.g. tcp/127.0.0.1:7447) instead of opening one",
+        help="join an existing Zenoh router (e.g. tcp/127.0.0.1:7447) instead of opening one "
+        "(no authentication: secure that router yourself)",
     )
     parser.add_argument(
         "--port",
         type=int,
-        default=bus.DEFAULT_PORT,
-        help=f"loopback port of the embedded bus (default {bus.DEFAULT_PORT})",
+        default=0,
+        help="loopback port of the embedded bus (default 0: a free port, printed)",
+    )
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="also listen here for agents on other machines, e.g. tls/0.0.0.0:7447 "
+        "(port 0: a free one; tls/ endpoints use a CA made for this run)",
+    )
+    parser.add_argument(
+        "--tls-name",
+        action="append",
+        default=[],
+        metavar="HOST",
+        help="another name or address other machines reach this one by (TLS certificate)",
+    )
+    parser.add_argument(
+        "--insecure",
+        action="store_true",
+        help="no authentication and no access control on the bus (debugging, benchmarks)",
     )
     parser.add_argument(
         "--remote",
@@ -108,7 +139,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _gateway_launcher(
-    experiment: Experiment, endpoints: list[str], args: argparse.Namespace
+    experiment: Experiment, run_id: str, args: argparse.Namespace
 ) -> GatewayLauncher | None:
     """The gateway process of ``experiment`` when an agent links through XBee (and it runs
     here)."""
@@ -119,7 +150,7 @@ def _gateway_launcher(
     plan = plan_for(experiment)
     if plan is None:
         return None
-    return GatewayLauncher(plan, endpoints, verbose=max(0, args.verbose - 1))
+    return GatewayLauncher(plan, [], run_id=run_id, verbose=max(0, args.verbose - 1))
 
 
 def default_output(experiment: Experiment, now: datetime.datetime) -> Path:
@@ -131,31 +162,83 @@ def run(args: argparse.Namespace) -> int:
     """Run the experiment; see the module docstring for the exit status."""
     overrides = overrides_from_args(args)
     if args.no_check:
-        experiment = load_experiment(args.file, overrides=overrides)
+        experiment = load_experiment(
+            args.file, overrides=overrides, max_agents=args.max_agents, remote=args.remote
+        )
     else:
-        experiment = check_file(args.file, overrides=overrides).raise_for_problems()
+        report = check_file(
+            args.file, overrides=overrides, max_agents=args.max_agents, remote=args.remote
+        )
+        experiment = report.raise_for_problems()
     unknown = [name for name in args.remote if name not in experiment.agent_names]
     if unknown:
         print(f"hilswarm run: --remote names unknown agents: {', '.join(unknown)}", file=sys.stderr)
         return 2
+    if args.live:  # a given port: refuse a busy one before anything starts
+        from hilswarm.orchestrator.live_view import port_problem  # noqa: PLC0415 - --live only
+
+        problem = port_problem(args.live)
+        if problem:
+            print(f"hilswarm run: {problem}", file=sys.stderr)
+            return 2
     out = args.out or default_output(experiment, datetime.datetime.now())
-    endpoints = list(args.connect) or [bus.loopback_endpoint(args.port)]
+    run_id = secrets.token_hex(4)
+    secure = not (args.insecure or args.connect)
+    listen = [] if args.connect else [bus.loopback_endpoint(args.port), *args.listen]
+    record = RunRecord(
+        RunEntry(
+            name=experiment.name,
+            run_id=run_id,
+            endpoints=list(args.connect or listen),
+            pid=0,
+            mode=experiment.mode,
+            n_ticks=experiment.n_ticks,
+            agents=dict.fromkeys(experiment.agent_names, "starting"),
+            file=str(args.file),
+            out=str(out),
+            started=datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds"),
+            secure=secure,
+        )
+    )
+    try:
+        return _run(args, experiment, record, listen=listen, secure=secure)
+    finally:
+        record.remove()
+
+
+def _run(
+    args: argparse.Namespace,
+    experiment: Experiment,
+    record: RunRecord,
+    *,
+    listen: list[str],
+    secure: bool,
+) -> int:
+    run_id = record.entry.run_id
+    out = Path(record.entry.out)
+    security = None
+    if secure:
+        security = RunSecurity.for_experiment(
+            experiment, run_id, record.folder, listen=listen, tls_names=args.tls_name
+        )
     display = StatusDisplay(sys.stdout)
     recorder = RecorderProcess(out, experiment, log_time_ns=time.time_ns(), live_port=args.live)
     launcher = AgentLauncher(
-        endpoints, verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
+        [], verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
     )
     manager = InstanceManager(
         experiment,
         recorder=recorder,
-        listen=[] if args.connect else endpoints,
+        listen=listen,
         connect=args.connect,
+        run_id=run_id,
+        security=security.router() if security else None,
         answer_timeout_s=args.answer_timeout,
-        display=display,
+        display=_RegistryDisplay(display, record),
         describe_process=launcher.describe,
     )
     interrupted = False
-    gateway = _gateway_launcher(experiment, endpoints, args)
+    gateway = _gateway_launcher(experiment, run_id, args)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         nonlocal interrupted
@@ -165,27 +248,53 @@ def run(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     summary: RunSummary | None = None
     error = ""
-    mocap = MocapRunner(experiment, endpoints) if experiment.mocap is not None else None
+    mocap = MocapRunner(experiment, [], run_id=run_id) if experiment.mocap is not None else None
     try:
         manager.open()
+        endpoints = manager.endpoints
+        launcher.endpoints = [e for e in endpoints if is_loopback(e)] or endpoints
+        if security is not None:
+            launcher.credentials = security.write_credentials(
+                endpoints,
+                remote=args.remote,
+                remote_users=[GATEWAY] if args.remote_gateway else [],
+            )
+        record.entry.endpoints = endpoints
+        record.entry.state = "waiting"
+        record.write()
         if gateway is not None:
+            gateway.endpoints = launcher.endpoints
+            if security is not None:
+                gateway.credentials = security.folder / f"{GATEWAY}.cred"
             display.log(f"XBee gateway: {gateway.start()}")
         if mocap is not None:
+            mocap.endpoints = launcher.endpoints
+            if security is not None:
+                mocap.credentials = security.folder / f"{MOCAP}.cred"
+                mocap.security = security.credentials(VIEWER, launcher.endpoints).security()
             mocap.start()
             mocap.wait_ready()
         launcher.start_all(
             [
-                agent_config_for(experiment, n)
+                agent_config_for(experiment, n, run_id=run_id)
                 for n in experiment.agent_names
                 if n not in args.remote
             ]
         )
         display.log(
             f"{experiment.name}: {len(experiment.agents)} agents, {experiment.mode}, "
-            f"{experiment.rate_hz:g} Hz, {experiment.duration_s:g} s; bus {', '.join(endpoints)}"
+            f"{experiment.rate_hz:g} Hz, {experiment.duration_s:g} s; run {run_id}; "
+            f"bus {', '.join(endpoints)}" + ("" if secure else " (no authentication)")
         )
+        for name in args.remote:
+            where = launcher.credentials.get(name)
+            display.log(
+                f"waiting for remote agent {name}"
+                + (f": hilswarm agent --credentials {where} ..." if where else "")
+            )
         manager.wait_for_agents(args.start_timeout, check=launcher.check)
         recorder.wait_ready()
+        record.entry.state = "running"
         if recorder.live_url:
             display.log("live view: open this in the Foxglove app (Open connection):")
             display.log(recorder.live_url)
@@ -195,10 +304,12 @@ def run(args: argparse.Namespace) -> int:
         AgentProcessError,
         RecordingError,
         GatewayProcessError,
+        bus.BusConnectionError,
         MocapError,
     ) as exc:
         error = str(exc)
     finally:
+        record.entry.state = "stopping"
         display.finish()
         launcher.stop()
         if gateway is not None:
@@ -219,3 +330,27 @@ def run(args: argparse.Namespace) -> int:
     if interrupted:
         return 130
     return 1 if summary is None or summary.failed else 0
+
+
+class _RegistryDisplay:
+    """The live status display, also kept in the run's registry entry (``hilswarm ps``)."""
+
+    def __init__(self, display: StatusDisplay, record: RunRecord) -> None:
+        self._display = display
+        self._record = record
+
+    def update(self, snapshot: StatusSnapshot) -> None:
+        self._display.update(snapshot)
+        entry = self._record.entry
+        entry.tick = snapshot.k
+        entry.agents.update(snapshot.states)
+        entry.agents.update(dict.fromkeys(snapshot.lost, "lost"))
+        if entry.state in ("running", "paused"):
+            entry.state = "paused" if snapshot.paused else "running"
+        self._record.write()
+
+    def log(self, text: str) -> None:
+        self._display.log(text)
+
+    def finish(self) -> None:
+        self._display.finish()

@@ -8,6 +8,9 @@ Each ``key=value`` is parsed as a TOML value (numbers, strings, arrays, inline t
 word that is not valid TOML is taken as a string. The agent applies the change between two
 ticks through its ControlModel (the controller validates it first) and acknowledges it; the
 change is also recorded on ``/<agent>/status``.
+
+The experiment is found by name in the run registry (``hilswarm ps``); an unknown or ambiguous
+name fails at once, listing what is running. The command authenticates as the run's operator.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ import tomllib
 from typing import Any
 
 from hilswarm.agents import bus
+from hilswarm.orchestrator.bus_access import OPERATOR
+from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "change controller parameters of a running agent"
 
@@ -27,13 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("experiment", help="experiment name (as in its [experiment] table)")
     parser.add_argument("agent", help="agent name")
     parser.add_argument("assignments", nargs="+", metavar="KEY=VALUE", help="TOML values")
-    parser.add_argument(
-        "--connect",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help=f"bus endpoint (default tcp/127.0.0.1:{bus.DEFAULT_PORT})",
-    )
+    add_target_arguments(parser)
     parser.add_argument("--timeout", type=float, default=5.0, help="bound on the answer [s]")
 
 
@@ -60,14 +59,22 @@ def run(args: argparse.Namespace) -> int:
     """Send the change and print the agent's acknowledgement."""
     try:
         params = parse_assignments(args.assignments)
-        keys = bus.BusKeys(args.experiment)
-        key = keys.set(args.agent)
+        bus.check_key_name(args.agent, what="agent name")
     except ValueError as exc:
         print(f"hilswarm set: {exc}", file=sys.stderr)
         return 2
-    endpoints = args.connect or [bus.loopback_endpoint(bus.DEFAULT_PORT)]
+    target = target_from_args(args, args.experiment, OPERATOR)
+    if target.entry is not None and args.agent not in target.entry.agents:
+        known = ", ".join(target.entry.agents) or "-"
+        print(
+            f"hilswarm set: {target.describe()} has no agent {args.agent!r}; agents: {known}",
+            file=sys.stderr,
+        )
+        return 2
+    key = target.keys.set(args.agent)
+    endpoints = target.endpoints
     payload = bus.encode_json({"params": params})
-    with bus.open_session(bus.client_config(endpoints)) as session:
+    with bus.open_session(bus.client_config(endpoints, security=target.security)) as session:
         replies = session.get(key, payload=payload, timeout=args.timeout)
         for reply in replies:
             if reply.ok is not None:

@@ -6,8 +6,10 @@ Example::
     hilswarm stop lead_follow --estop    # emergency: every board's outputs safe at once
     hilswarm stop lead_follow --pause    # hold ticks; --resume continues
 
-The command publishes on ``hilswarm/<exp>/control`` and waits (bounded) until the instance
-manager reports that it stopped.
+The experiment is found by name in the run registry (``hilswarm ps``); an unknown or ambiguous
+name fails at once, listing what is running. The command authenticates as the run's operator,
+publishes on ``hilswarm/<exp>/<run_id>/manager/request`` (the manager forwards it to the agents
+at once) and, for stop and estop, waits (bounded) until the manager reports that it stopped.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ import threading
 
 import zenoh
 from hilswarm.agents import bus
+from hilswarm.orchestrator.bus_access import OPERATOR
+from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "bring every agent of a running experiment to safe mode and stop"
 
@@ -30,13 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--pause", action="store_true", help="pause ticking")
     group.add_argument("--resume", action="store_true", help="resume ticking")
     parser.add_argument("--reason", default="", help="recorded with the command")
-    parser.add_argument(
-        "--connect",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help=f"bus endpoint (default tcp/127.0.0.1:{bus.DEFAULT_PORT})",
-    )
+    add_target_arguments(parser)
     parser.add_argument("--timeout", type=float, default=15.0, help="bound on waiting [s]")
 
 
@@ -50,33 +48,34 @@ def run(args: argparse.Namespace) -> int:
         command = bus.ControlCommand.RESUME
     else:
         command = bus.ControlCommand.STOP
-    try:
-        keys = bus.BusKeys(args.experiment)
-    except ValueError as exc:
-        print(f"hilswarm stop: {exc}", file=sys.stderr)
-        return 2
-    endpoints = args.connect or [bus.loopback_endpoint(bus.DEFAULT_PORT)]
+    target = target_from_args(args, args.experiment, OPERATOR)
+    keys = target.keys
     matched = threading.Event()
     stopped = threading.Event()
 
     def on_manager_status(sample: zenoh.Sample) -> None:
-        if bus.decode_json(sample.payload.to_bytes()).get("state") == "stopped":
+        try:
+            state = bus.decode_json(sample.payload.to_bytes()).get("state")
+        except bus.BusMessageError:
+            return
+        if state == "stopped":
             stopped.set()
 
     def on_match(status: zenoh.MatchingStatus) -> None:
         if status.matching:
             matched.set()
 
-    with bus.open_session(bus.client_config(endpoints)) as session:
+    config = bus.client_config(target.endpoints, security=target.security)
+    with bus.open_session(config) as session:
         status_sub = session.declare_subscriber(keys.manager_status, on_manager_status)
-        publisher = session.declare_publisher(keys.control, **bus.TICK_PATH_QOS)
+        publisher = session.declare_publisher(keys.manager_request, **bus.TICK_PATH_QOS)
         listener = publisher.declare_matching_listener(on_match)
         if bus.has_subscribers(publisher):
             matched.set()
         if not matched.wait(args.timeout):
             print(
-                f"hilswarm stop: no running experiment {args.experiment!r} on "
-                f"{', '.join(endpoints)}",
+                f"hilswarm stop: {target.describe()} does not listen on "
+                f"{', '.join(target.endpoints)}",
                 file=sys.stderr,
             )
             return 1

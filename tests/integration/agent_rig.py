@@ -14,7 +14,7 @@ import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME, Agent, AgentConfig, AgentHardware
 from hilswarm.agents.control import ControlModel
-from swarm_harness import free_port, wait_for
+from swarm_harness import wait_for
 from swarm_toys import ToyCart, ToyDrive
 
 DT = 0.02
@@ -53,8 +53,8 @@ class Rig:
     def __init__(self, config: AgentConfig, hardware: Callable[..., AgentHardware]) -> None:
         self.config = config
         self.keys = bus.BusKeys(config.experiment)
-        endpoint = bus.loopback_endpoint(free_port())
-        self.router = bus.open_session(bus.listen_config([endpoint]))
+        self.router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+        (endpoint,) = bus.bound_endpoints(self.router)  # the free port the router bound
         self.lock = threading.Lock()
         self.ys: list[int] = []
         self.statuses: list[dict[str, Any]] = []

@@ -2,15 +2,17 @@
 
 Every process started here runs in its own process group and is killed (with its agents) by
 :meth:`RunProcess.cleanup`, which the tests call from a ``finally``/fixture. Every wait is
-bounded.
+bounded. Each run gets a run registry of its own (``XDG_RUNTIME_DIR`` in the test's folder):
+its router binds a free port and reports it there, with the run id and the credentials the
+spy uses (viewer to listen, operator to command).
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -22,17 +24,13 @@ from typing import Any
 
 import zenoh
 from hilswarm.agents import bus
+from hilswarm.agents.credentials import Credentials
 from hilswarm.agents.mcap_io import iter_messages
+from hilswarm.orchestrator.bus_access import OPERATOR, VIEWER
+from hilswarm.orchestrator.run_registry import RunEntry, list_runs
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
-
-
-def free_port() -> int:
-    """A free TCP port on loopback."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
@@ -69,8 +67,21 @@ def children_running(pid: int, module: bytes) -> list[int]:
 
 
 def agent_pids(pid: int) -> list[int]:
-    """Children of ``pid`` that are agent processes (not the recorder process)."""
-    return children_running(pid, b"hilswarm.agents.agent")
+    """Agent processes below ``pid``: its children, or the children of its agent fork server."""
+    servers = children_running(pid, b"hilswarm.agents.spawner")
+    agents = [c for c in children_running(pid, b"hilswarm.agents.agent") if c not in servers]
+    for server in servers:
+        agents += children_running(server, b"hilswarm.agents.agent")
+    return agents
+
+
+def agent_name_of(pid: int) -> str:
+    """The agent name of agent process ``pid``, from its command line or process title."""
+    words = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").split()
+    if b"--name" in words:  # a forked agent's title
+        return words[words.index(b"--name") + 1].decode()
+    config = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    return json.loads(config[config.index(b"--config") + 1])["name"]
 
 
 def pid_alive(pid: int) -> bool:
@@ -82,16 +93,50 @@ def pid_alive(pid: int) -> bool:
     return state != "Z"
 
 
-class RunProcess:
-    """``hilswarm run`` in its own process group, with output captured to files."""
+def runtime_dir(folder: Path) -> Path:
+    """A private ``XDG_RUNTIME_DIR`` (mode 0700) in ``folder``: a run registry of its own."""
+    path = folder / "xdg"
+    path.mkdir(mode=0o700, exist_ok=True)
+    return path
 
-    def __init__(self, tmp_path: Path, experiment: Path, *args: str, port: int) -> None:
-        self.port = port
+
+def run_env(folder: Path) -> dict[str, str]:
+    """Environment of a ``hilswarm`` process started by a test (registry in ``folder``)."""
+    return {
+        **os.environ,
+        "PYTHONPATH": f"{HERE}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+        "XDG_RUNTIME_DIR": str(runtime_dir(folder)),
+    }
+
+
+class RunProcess:
+    """``hilswarm run`` in its own process group, with output captured to files.
+
+    Args:
+        tmp_path: the test's folder (recording, output, run registry).
+        experiment: the experiment file.
+        args: more ``hilswarm run`` arguments.
+        registry: the folder whose run registry the run uses (default ``tmp_path``; runs
+            that share one show up together in ``hilswarm ps``).
+        netns: run inside this network namespace (``ip netns exec``; same pid).
+    """
+
+    def __init__(
+        self,
+        tmp_path: Path,
+        experiment: Path,
+        *args: str,
+        registry: Path | None = None,
+        netns: str | None = None,
+    ) -> None:
         self.out = tmp_path / "run.mcap"
         self.stdout_path = tmp_path / "run.stdout"
         self.stderr_path = tmp_path / "run.stderr"
-        env = {**os.environ, "PYTHONPATH": f"{HERE}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+        self.env = run_env(registry or tmp_path)
+        self.registry = Path(self.env["XDG_RUNTIME_DIR"]) / "hilswarm"
+        env = self.env
         command = [
+            *(("ip", "netns", "exec", netns) if netns else ()),
             sys.executable,
             "-m",
             "hilswarm.orchestrator.cli",
@@ -99,8 +144,6 @@ class RunProcess:
             str(experiment),
             "--out",
             str(self.out),
-            "--port",
-            str(port),
             *args,
         ]
         self._stdout = self.stdout_path.open("wb")
@@ -116,9 +159,26 @@ class RunProcess:
         )
         self.agent_pids: list[int] = []
 
-    @property
-    def endpoint(self) -> str:
-        return bus.loopback_endpoint(self.port)
+    def entry(self, timeout_s: float = 60.0) -> RunEntry:
+        """This run's registry entry, once its bus is up (its router's bound endpoints)."""
+        found: list[RunEntry] = []
+
+        def registered() -> bool:
+            if self.process.poll() is not None:
+                raise AssertionError(f"hilswarm run exited early\n{self.output()}")
+            if self.registry.is_dir():
+                pid = self.process.pid
+                found[:] = [
+                    e for e in list_runs(self.registry) if e.pid == pid and e.state != "starting"
+                ]
+            return bool(found)
+
+        wait_for(registered, timeout_s, "the run's registry entry")
+        return found[0]
+
+    def credentials(self, user: str) -> Credentials:
+        """``user``'s credentials for this run (from its registry folder)."""
+        return Credentials.read(self.registry / self.entry().run_id / f"{user}.cred")
 
     def remember_agents(self, n: int, timeout_s: float = 60.0) -> list[int]:
         """Wait until ``n`` agent processes exist; remember their pids for cleanup."""
@@ -168,11 +228,25 @@ class RunProcess:
 
 
 class Spy:
-    """A Zenoh client session that subscribes to everything of an experiment."""
+    """Zenoh client sessions on a run's bus: one that subscribes to everything of the run (as
+    the run's viewer), one that sends operator commands (as its operator). On an ``--insecure``
+    run both are plain sessions (that may put anywhere).
 
-    def __init__(self, endpoint: str, experiment: str) -> None:
-        self.keys = bus.BusKeys(experiment)
-        self.session = bus.open_session(bus.client_config([endpoint]))
+    Keys are counted without the run id (``hilswarm/<exp>/agent/a/y``), as tests name them.
+    """
+
+    def __init__(self, run: RunProcess) -> None:
+        entry = run.entry()
+        self.keys = bus.BusKeys(entry.name, entry.run_id)
+        self._legacy = bus.BusKeys(entry.name)
+        if entry.secure:
+            viewer, operator = run.credentials(VIEWER), run.credentials(OPERATOR)
+            as_viewer = bus.client_config(viewer.endpoints, security=viewer.security())
+            as_operator = bus.client_config(operator.endpoints, security=operator.security())
+        else:  # hilswarm run --insecure: no credentials, no access control
+            as_viewer = as_operator = bus.client_config(entry.endpoints)
+        self.session = bus.open_session(as_viewer)
+        self.operator = bus.open_session(as_operator)
         self.counts: dict[str, int] = defaultdict(int)
         self.last: dict[str, bytes] = {}
         self._lock = threading.Lock()
@@ -181,7 +255,7 @@ class Spy:
         )
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
+        key = str(sample.key_expr).replace(self.keys.prefix, self._legacy.prefix, 1)
         with self._lock:
             self.counts[key] += 1
             self.last[key] = sample.payload.to_bytes()
@@ -193,19 +267,19 @@ class Spy:
     def last_tick(self) -> int:
         """Index of the last tick message seen (-1 before any)."""
         with self._lock:
-            payload = self.last.get(self.keys.tick)
+            payload = self.last.get(self._legacy.tick)
         return -1 if payload is None else bus.decode_tick(payload).k
 
     def manager_state(self) -> str:
         """The state the instance manager last announced on its status key ("" before any)."""
         with self._lock:
-            payload = self.last.get(self.keys.manager_status)
+            payload = self.last.get(self._legacy.manager_status)
         return "" if payload is None else str(bus.decode_json(payload).get("state", ""))
 
     def control(self, command: bus.ControlCommand, reason: str = "test") -> None:
-        """Publish a control command."""
-        self.session.put(
-            self.keys.control,
+        """Send a control command as the operator (the manager forwards it to the agents)."""
+        self.operator.put(
+            self.keys.manager_request,
             bus.encode_control(command, reason=reason),
             congestion_control=zenoh.CongestionControl.BLOCK,
             priority=zenoh.Priority.REAL_TIME,
@@ -213,18 +287,14 @@ class Spy:
 
     def close(self) -> None:
         self.session.close()
+        self.operator.close()
 
 
-def connect_spy(run: RunProcess, experiment: str, timeout_s: float = 30.0) -> Spy:
-    """Open a spy once the run's bus is up (retrying while the router is not listening)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            return Spy(run.endpoint, experiment)
-        except bus.BusConnectionError:
-            if time.monotonic() > deadline or run.process.poll() is not None:
-                raise AssertionError(f"no bus at {run.endpoint}\n{run.output()}") from None
-            time.sleep(0.1)
+def connect_spy(run: RunProcess, experiment: str, timeout_s: float = 60.0) -> Spy:
+    """Open a spy once the run's bus is up (its registry entry says where)."""
+    spy = Spy(run)
+    assert spy.keys.experiment == experiment, (spy.keys.experiment, experiment)
+    return spy
 
 
 def read_recording(path: Path) -> dict[str, list[dict[str, Any]]]:

@@ -21,9 +21,9 @@ from hilswarm.agents.link.simavr import SimavrBoard
 from hilswarm.agents.link.wire_server import SocketWireServer
 from swarm_harness import (
     RunProcess,
+    agent_name_of,
     children_running,
     connect_spy,
-    free_port,
     read_recording,
     wait_for,
 )
@@ -218,15 +218,12 @@ def test_a_stalled_simavr_board_does_not_end_a_realtime_run(
         "8",
         "--link",
         "leader=simavr://uno",
-        port=free_port(),
     )
     runs.append(run)
     spy = connect_spy(run, "lead_follow")
     try:
         pids = run.remember_agents(3)
-        leader = next(
-            p for p in pids if b'"name": "leader"' in Path(f"/proc/{p}/cmdline").read_bytes()
-        )
+        leader = next(p for p in pids if agent_name_of(p) == "leader")
         wait_for(lambda: children_running(leader, b"hilswarm-simavr"), 60, "the simulator")
         harness = children_running(leader, b"hilswarm-simavr")[0]
         wait_for(lambda: spy.last_tick() >= 40, 60, "tick 40")

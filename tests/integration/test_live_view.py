@@ -6,13 +6,15 @@ import asyncio
 import json
 import re
 import struct
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import websockets
-from swarm_harness import REPO, RunProcess, free_port, wait_for
+from swarm_harness import REPO, RunProcess, run_env, wait_for
 
 LEAD_FOLLOW = REPO / "graphs" / "lead_follow.toml"
 # foxglove-sdk >= 0.x negotiates "foxglove.sdk.v1": the foxglove.websocket.v1 protocol under its
@@ -73,7 +75,6 @@ def test_a_client_sees_channels_and_messages_of_a_running_experiment(
 ) -> None:
     run = RunProcess(
         tmp_path, LEAD_FOLLOW, "--no-check", "--mode", "realtime", "--duration", "30", "--live",
-        port=free_port(),
     )  # fmt: skip
     runs.append(run)
     wait_for(
@@ -108,3 +109,20 @@ def test_a_client_sees_channels_and_messages_of_a_running_experiment(
     }
     event_only = {"/orchestrator/status"}  # first written when the run stops or pauses
     assert topics - event_only <= set(channels), topics - set(channels)
+
+
+def test_a_busy_live_port_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    from hilswarm.orchestrator.live_view import LiveView
+
+    busy = LiveView(0)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(LEAD_FOLLOW),
+             "--out", str(tmp_path / "run.mcap"), "--live", str(busy.port)],
+            capture_output=True, text=True, timeout=120, check=False, env=run_env(tmp_path),
+        )  # fmt: skip
+    finally:
+        busy.close()
+    assert result.returncode == 2, result.stderr
+    assert f"--live: cannot listen on 127.0.0.1:{busy.port}" in result.stderr
+    assert not (tmp_path / "run.mcap").exists()

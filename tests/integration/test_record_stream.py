@@ -108,7 +108,10 @@ def check_recording(path: Path, experiment: Experiment) -> None:
         "sense_s": 3e-4,
         "compute_s": 1e-4,
         "actuate_s": 2e-4,
+        "link_s": 0.0,
+        "bus_s": 0.002 - (1e-4 + 2e-4 + 3e-4),
         "skipped": 1,
+        "retries": 0,
     }
     assert recording["/f1/telemetry/battery"][0]["values"] == [11.9]
     assert recording["/leader/status"][0]["state"] == "running"

@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -30,17 +29,11 @@ STOP_EXPERIMENT = Path(__file__).resolve().parent / "data" / "safe_mode_battery_
 RUN_TIMEOUT_S = 240
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
 def run_experiment(experiment: Path, folder: Path) -> tuple[int, str, dict[str, list[dict]]]:
     """``hilswarm run`` of ``experiment``: exit status, output, messages by topic."""
     out = folder / "run.mcap"
     command = [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(experiment),
-               "--out", str(out), "--port", str(free_port())]  # fmt: skip
+               "--out", str(out)]  # fmt: skip
     process = subprocess.Popen(
         command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         start_new_session=True, cwd=out.parent,

@@ -12,7 +12,7 @@ from hilswarm.agents.sim import chapter3
 from hilswarm.agents.vehicles.frisbee import DEFAULT_CALIBRATION
 from hilswarm.orchestrator.calibration_report import calibration_as_json
 from hilswarm.orchestrator.experiment import load_experiment
-from swarm_harness import REPO, RunProcess, free_port, read_recording
+from swarm_harness import REPO, RunProcess, read_recording
 
 pytestmark = pytest.mark.integration
 
@@ -39,7 +39,7 @@ def lead_follow_recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[
 
 
 def run_demo(runs: list[RunProcess], tmp_path: Path, name: str) -> dict:
-    run = RunProcess(tmp_path, GRAPHS / f"{name}.toml", port=free_port())
+    run = RunProcess(tmp_path, GRAPHS / f"{name}.toml")
     runs.append(run)
     assert run.wait(300) == 0, run.output()
     assert "recording:" in run.output()
@@ -131,7 +131,7 @@ def test_lockstep_results_do_not_depend_on_the_window(
     )
     assert load_experiment(barrier).lockstep_window == 1
     assert load_experiment(GRAPHS / "lead_follow.toml").lockstep_window > 1
-    run = RunProcess(tmp_path, barrier, port=free_port())
+    run = RunProcess(tmp_path, barrier)
     runs.append(run)
     assert run.wait(300) == 0, run.output()
     strict = read_recording(run.out)

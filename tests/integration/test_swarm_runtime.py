@@ -20,9 +20,9 @@ from swarm_harness import (
     TOY_NEIGHBOURS,
     RunProcess,
     Spy,
+    agent_name_of,
     child_pids,
     connect_spy,
-    free_port,
     pid_alive,
     read_recording,
     wait_for,
@@ -53,7 +53,7 @@ def spies() -> Iterator[list[Spy]]:
 
 
 def start(runs: list[RunProcess], tmp_path: Path, experiment: Path, *args: str) -> RunProcess:
-    run = RunProcess(tmp_path, experiment, "--no-check", *args, port=free_port())
+    run = RunProcess(tmp_path, experiment, "--no-check", *args)
     runs.append(run)
     return run
 
@@ -353,27 +353,29 @@ def test_set_changes_parameters_between_ticks_and_is_acknowledged(
     run.remember_agents(4)
     wait_for(lambda: spy.last_tick() >= 10, 60, "tick 10")
     cli = CLI
-    connect = ["--connect", run.endpoint]
+    # set and stop find the run by name in the run registry: no port, no endpoint.
     ok = subprocess.run(
-        [*cli, "set", "toy", "b", "gain=0.25", *connect],
+        [*cli, "set", "toy", "b", "gain=0.25"],
         capture_output=True,
         text=True,
         timeout=60,
         check=False,
+        env=run.env,
     )
     assert ok.returncode == 0, ok.stdout + ok.stderr
     assert "set {'gain': 0.25}" in ok.stdout
     bad = subprocess.run(
-        [*cli, "set", "toy", "b", 'gain="fast"', *connect],
+        [*cli, "set", "toy", "b", 'gain="fast"'],
         capture_output=True,
         text=True,
         timeout=60,
         check=False,
+        env=run.env,
     )
     assert bad.returncode == 2
     assert "gain must be a number" in bad.stderr
     stop = subprocess.run(
-        [*cli, "stop", "toy", *connect], capture_output=True, text=True, timeout=60, check=False
+        [*cli, "stop", "toy"], capture_output=True, text=True, timeout=60, check=False, env=run.env
     )
     assert stop.returncode == 0, stop.stdout + stop.stderr
     assert run.wait(20) == 0, run.output()
@@ -386,9 +388,7 @@ def test_set_changes_parameters_between_ticks_and_is_acknowledged(
 def _pid_of(pids: list[int], agent: str) -> int:
     """The pid of ``agent`` among agent processes (its name is in the --config JSON)."""
     for pid in pids:
-        command = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        config = command[command.index(b"--config") + 1]
-        if b'"name": "%s"' % agent.encode() in config:
+        if agent_name_of(pid) == agent:
             return pid
     raise AssertionError(f"no process for agent {agent}")
 
@@ -454,9 +454,10 @@ def test_malformed_and_forged_input_is_dropped_counted_and_never_fatal(
 ) -> None:
     """Garbage on every key an agent listens to, and ticks far ahead of the window: the
     lockstep run still completes every tick, no agent runs away, and the agents' status
-    messages count what they dropped."""
+    messages count what they dropped. The agents' own defence: the run is ``--insecure``, so
+    the router's access control (tests/integration/test_bus_security.py) lets it all through."""
     experiment = write_toy_experiment(tmp_path / "toy.toml", duration_s=4.0)
-    run = start(runs, tmp_path, experiment)
+    run = start(runs, tmp_path, experiment, "--insecure")
     spy = connect_spy(run, "toy")
     spies.append(spy)
     keys = spy.keys

@@ -20,7 +20,7 @@ from hilswarm.agents.telemetry import Telemetry, TelemetryBatcher
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcap.reader import make_reader
-from swarm_harness import REPO, RunProcess, Spy, connect_spy, free_port, read_recording, wait_for
+from swarm_harness import REPO, RunProcess, Spy, connect_spy, read_recording, wait_for
 
 LEAD_FOLLOW = REPO / "graphs" / "lead_follow.toml"
 AGENTS = ("leader", "f1", "f2")
@@ -128,7 +128,7 @@ def test_batch_round_trip_property(n_fields: int, rows: int, seed: int) -> None:
 
 
 def start(runs: list[RunProcess], tmp_path: Path, *args: str) -> RunProcess:
-    run = RunProcess(tmp_path, LEAD_FOLLOW, "--no-check", *args, port=free_port())
+    run = RunProcess(tmp_path, LEAD_FOLLOW, "--no-check", *args)
     runs.append(run)
     return run
 

@@ -8,10 +8,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from hilswarm.agents import bus
 from hilswarm.agents.errors import SimulatorError
 from hilswarm.agents.link.simavr import locate_build
-from swarm_harness import REPO, RunProcess, connect_spy, free_port, read_recording, wait_for
+from swarm_harness import REPO, RunProcess, connect_spy, read_recording, wait_for
 
 pytestmark = [pytest.mark.integration, pytest.mark.firmware, pytest.mark.slow]
 
@@ -29,9 +28,7 @@ def test_xbee_swarm_demo_runs_and_every_robot_moves(runs: list[RunProcess], tmp_
         locate_build("duemilanove")
     except SimulatorError as exc:
         pytest.skip(str(exc))
-    run = RunProcess(
-        tmp_path, REPO / "graphs" / "xbee_swarm.toml", "--duration", "3", port=free_port()
-    )
+    run = RunProcess(tmp_path, REPO / "graphs" / "xbee_swarm.toml", "--duration", "3")
     runs.append(run)
     assert run.wait(300) == 0, run.output()
     output = run.output()
@@ -60,7 +57,7 @@ def _put_when_running(run: RunProcess, commands: list[tuple[int, dict]]) -> None
     try:
         for k, command in commands:
             wait_for(lambda k=k: spy.last_tick() >= k, 60.0, f"tick {k}")
-            spy.session.put(bus.BusKeys("xbee_swarm").gateway("sim"), json.dumps(command))
+            spy.operator.put(spy.keys.gateway("sim"), json.dumps(command))
     finally:
         spy.close()
 
@@ -72,21 +69,22 @@ def test_robot_out_of_range_goes_safe_and_the_others_go_on(
         locate_build("duemilanove")
     except SimulatorError as exc:
         pytest.skip(str(exc))
-    run = RunProcess(tmp_path, _variant(tmp_path), port=free_port())
+    run = RunProcess(tmp_path, _variant(tmp_path))
     runs.append(run)
-    _put_when_running(run, [(20, {"out_of_range": "f3"})])
+    # f5, the chain's tail (nobody follows it) and the robot running the real firmware
+    _put_when_running(run, [(20, {"out_of_range": "f5"})])
     assert run.wait(300) == 0, run.output()
     recording = read_recording(run.out)
-    f3 = [m for m in recording["/f3/status"] if m["state"] == "safe"]
-    assert f3 and "BoardTimeoutError" in f3[0]["detail"], recording["/f3/status"]
-    assert f3[0]["k"] >= 18  # the fault came with tick 20 (an agent may still be on 19)
-    for name in ("leader", "f1", "f2", "f4", "f5"):  # safe only at the end of the run
+    f5 = [m for m in recording["/f5/status"] if m["state"] == "safe"]
+    assert f5 and "BoardTimeoutError" in f5[0]["detail"], recording["/f5/status"]
+    assert f5[0]["k"] >= 18  # the fault came with tick 20 (an agent may still be on 19)
+    for name in ("leader", "f1", "f2", "f3", "f4"):  # safe only at the end of the run
         failures = [m for m in recording[f"/{name}/status"] if "Error" in m.get("detail", "")]
         assert not failures, (name, failures)
     assert recording["/leader/y"][-1]["k"] >= 100
     stats = recording["/gateway/stats"]
     assert sum(m["values"][4] for m in stats) > 0  # TX failures counted
-    assert stats[-1]["totals"]["robots"]["f3"]["tx_failures"] > 0
+    assert stats[-1]["totals"]["robots"]["f5"]["tx_failures"] > 0
 
 
 def test_coordinator_unplugged_every_xbee_agent_goes_safe_then_it_reconnects(
@@ -96,7 +94,7 @@ def test_coordinator_unplugged_every_xbee_agent_goes_safe_then_it_reconnects(
         locate_build("duemilanove")
     except SimulatorError as exc:
         pytest.skip(str(exc))
-    run = RunProcess(tmp_path, _variant(tmp_path), port=free_port())
+    run = RunProcess(tmp_path, _variant(tmp_path))
     runs.append(run)
     _put_when_running(run, [(20, {"unplug": True}), (30, {"replug": True})])
     assert run.wait(300) == 0, run.output()

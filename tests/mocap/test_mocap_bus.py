@@ -7,7 +7,6 @@ the real client (qtm-rt) run in this process on threads; every wait is bounded.
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -29,12 +28,6 @@ EXPERIMENT = "mocap_bus"
 TIMEOUT_S = 30.0
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = TIMEOUT_S) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():
@@ -45,8 +38,8 @@ def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = TIMEOU
 
 @pytest.fixture
 def router() -> Iterator[list[str]]:
-    endpoints = [bus.loopback_endpoint(free_port())]
-    session = bus.open_session(bus.listen_config(endpoints))
+    session = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+    endpoints = bus.bound_endpoints(session)  # the free port the router bound
     try:
         yield endpoints
     finally:

@@ -83,7 +83,7 @@ def test_hilswarm_mocap_refused_server_and_bad_input(capsys: pytest.CaptureFixtu
     [
         (('mode = "realtime"', 'mode = "lockstep"'), "experiment.mode", "wall clock"),
         (('system = "sim"', 'system = "kinect"'), "mocap.system", "is not one of"),
-        (("hold_frames = 20", "hold_frames = 0"), "mocap.hold_frames", "frames >= 1"),
+        (("hold_frames = 50", "hold_frames = 0"), "mocap.hold_frames", "frames >= 1"),
         (("rate_hz = 100.0", "rate_hz = 0"), "mocap.rate_hz", "out of range"),
         (("dropout_frames = 3", "dropout_frames = 3\nflicker = 1"), "mocap.sim.flicker", "unknown"),
         (('mocap_body = "frisbee2"', 'mocap_body = "frisbee1"'), "agents.f1.mocap_body", "already"),

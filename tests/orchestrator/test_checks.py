@@ -18,7 +18,11 @@ CASES: dict[str, tuple[str, str, str]] = {
     "missing_experiment.toml": ("missing_experiment.toml", "experiment", "missing [experiment]"),
     "bad_name.toml": ("bad_name.toml", "experiment.name", "'my run' is not a valid name"),
     "bad_rate.toml": ("bad_rate.toml", "experiment.rate_hz", "0 Hz is out of range"),
-    "bad_duration.toml": ("bad_duration.toml", "experiment.duration_s", "expected a duration > 0"),
+    "bad_duration.toml": (
+        "bad_duration.toml",
+        "experiment.duration_s",
+        "-5 s is out of range; expected duration_s > 0",
+    ),
     "bad_mode.toml": ("bad_mode.toml", "experiment.mode", "'fast' is not one of"),
     "bad_agent_loss.toml": (
         "bad_agent_loss.toml",
@@ -28,7 +32,7 @@ CASES: dict[str, tuple[str, str, str]] = {
     "bad_lockstep_window.toml": (
         "bad_lockstep_window.toml",
         "experiment.lockstep_window",
-        "0 is not a valid window",
+        "0 is out of range; expected lockstep_window >= 1",
     ),
     "unknown_key.toml": ("unknown_key.toml", "experiment.rate", "unknown key"),
     "watchdog_short.toml": (
@@ -145,14 +149,30 @@ def test_several_problems_are_reported_together(
     path.write_text(text)
     assert main(["check", str(path)]) == 2
     err = capsys.readouterr().err
-    # Structure problems stop before the deep checks; fix them and the deep ones show.
+    # A structure problem does not hide the deep checks of the agents: one pass shows all.
     assert f"{path}:experiment.mode:" in err
-    path.write_text(text.replace('mode = "fast"\n', ""))
-    assert main(["check", str(path)]) == 2
-    err = capsys.readouterr().err
     assert f"{path}:agents.a.vehicle:" in err
     assert f"{path}:agents.b.params:" in err
-    assert "2 problems" in err
+    assert "3 problems" in err
+
+
+def test_a_broken_graph_hides_nothing_else(tmp_path: Path) -> None:
+    text = (DATA / "bad_params.toml").read_text()
+    start = text.index("adjacency = ")
+    end = text.index("]]", start) + 2
+    text = text[:start] + "adjacency = [[0, 1, 1], 7, [1, 1, 1]]" + text[end:]
+    text = text.replace("[agents.a]\n", '[agents.a]\nvehicle = "hovercraft"\n')
+    text = text.replace("rate_hz = 10.0", "rate_hz = 10.0\ncolour = 1")
+    path = tmp_path / "graph.toml"
+    path.write_text(text)
+    keys = {p.key for p in check_file(path).problems}
+    assert {
+        "graph.adjacency[1]",  # the row that is not a list
+        "graph.adjacency[2][2]",  # a later row is still checked
+        "experiment.colour",
+        "agents.a.vehicle",  # deep checks of the agents still run
+        "agents.b.params",
+    } <= keys, keys
 
 
 def test_link_override_of_unknown_agent(capsys: pytest.CaptureFixture[str]) -> None:
@@ -168,14 +188,73 @@ def test_link_override_is_checked_deeply(capsys: pytest.CaptureFixture[str]) -> 
     path = GRAPHS / "lead_follow.toml"
     assert main(["check", str(path), "--link", "leader=gopher://x"]) == 2
     assert f"{path}:agents.leader.link: link URL 'gopher://x'" in capsys.readouterr().err
+    assert main(["check", str(path), "--link", "leader=sim://duemilanove"]) == 0
     # A real board gives no pose and lead_follow.toml has no [mocap]: the leader cannot run.
-    assert main(["check", str(path), "--link", "leader=/dev/ttyUSB0"]) == 2
+    assert main(["check", str(path), "--link", "leader=socket://127.0.0.1:5760"]) == 2
     err = capsys.readouterr().err
-    assert f"{path}:agents.leader.link: agent 'leader': vehicle 'frisbee' needs its pose" in err
+    assert f"{path}:agents.leader.link: agent 'leader': vehicle 'frisbee' needs a pose" in err
     assert "[mocap]" in err
     # With a mocap system the same override is fine (its bodies come from the simulator).
     mocap = GRAPHS / "lead_follow_mocap.toml"
-    assert main(["check", str(mocap), "--link", "leader=/dev/ttyUSB0"]) == 0
+    assert main(["check", str(mocap), "--link", "leader=socket://127.0.0.1:5760"]) == 0
+
+
+@pytest.mark.parametrize(
+    ("url", "reason"),
+    [
+        ("/dev/ttyUSB9", "serial device '/dev/ttyUSB9' does not exist"),
+        ("simavr://mega", "unknown board profile 'mega'"),
+        ("sim://mega", "unknown board profile 'mega'"),
+        ("socket://127.0.0.1", "expected socket://HOST:PORT"),
+        ("sim://uno?colour=red", "unknown option 'colour'"),
+    ],
+)
+def test_check_and_run_reject_the_same_links(
+    url: str, reason: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = GRAPHS / "lead_follow.toml"
+    assert main(["check", str(path), "--link", f"leader={url}"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:agents.leader.link: " in err and reason in err, err
+    assert "Traceback" not in err
+    # run refuses it the same way before starting anything, with or without the deep checks
+    out = tmp_path / "run.mcap"
+    for extra in ([], ["--no-check"]):
+        assert main(["run", str(path), "--out", str(out), *extra, "--link", f"leader={url}"]) == 2
+        err = capsys.readouterr().err
+        assert f"{path}:agents.leader.link: " in err and reason in err, err
+        assert not out.exists()
+
+
+def test_network_serial_urls_are_only_syntax_checked(tmp_path: Path) -> None:
+    text = (DATA / "shared_serial.toml").read_text()
+    text = text.replace('link = "socket://127.0.0.1:5760"', 'link = "rfc2217://127.0.0.1:1"', 1)
+    path = tmp_path / "net.toml"
+    path.write_text(text)  # nobody listens on either port: check does not connect
+    report = check_file(path)
+    assert report.ok, report.problems
+
+
+def test_vehicle_that_needs_a_pose_on_a_real_link_needs_mocap(tmp_path: Path) -> None:
+    path = GRAPHS / "lead_follow.toml"
+    report = check_file(path, overrides={"links": {"leader": "socket://127.0.0.1:5760"}})
+    [problem] = report.problems
+    assert problem.key == "agents.leader.link"
+    assert "agent 'leader'" in problem.message and "[mocap]" in problem.message
+    # simulated boards simulate the motion capture too
+    assert check_file(path, overrides={"links": {"leader": "simavr://uno"}}).ok
+    # with a [mocap] table the pose comes from it
+    text = path.read_text().replace('mode = "lockstep"', 'mode = "realtime"')
+    text += '\n[mocap]\nsystem = "sim"\n'
+    with_mocap = tmp_path / "lead_follow.toml"
+    with_mocap.write_text(text)
+    assert check_file(with_mocap, overrides={"links": {"leader": "socket://127.0.0.1:5760"}}).ok
+    blimp = (DATA / "shared_serial.toml").read_text().replace('"frisbee"', '"blimpduino"')
+    blimp = blimp.replace('[mocap]\nsystem = "sim"\n', "")
+    blimp_path = tmp_path / "blimp.toml"
+    blimp_path.write_text(blimp)
+    keys = {p.key for p in check_file(blimp_path).problems if "needs a pose" in p.message}
+    assert keys == {"agents.leader.link", "agents.f1.link"}
 
 
 @pytest.mark.parametrize(
@@ -241,3 +320,27 @@ def test_graph_command(capsys: pytest.CaptureFixture[str]) -> None:
     assert data["in_degree"]["a0"] == 3 and data["strongly_connected"]
     assert main(["graph", str(DATA / "diagonal.toml")]) == 2
     assert "graph.adjacency[1][1]" in capsys.readouterr().err
+
+
+def test_remote_agents_links_are_not_checked_for_local_devices(tmp_path: Path) -> None:
+    text = (DATA / "shared_serial.toml").read_text()
+    text = text.replace('link = "socket://127.0.0.1:5760"', 'link = "/dev/ttyUSB9"', 1)
+    path = tmp_path / "remote.toml"
+    path.write_text(text)
+    assert "does not exist" in " ".join(p.message for p in check_file(path).problems)
+    # the leader's board is plugged into another machine (hilswarm run --remote leader)
+    assert check_file(path, remote=["leader"]).ok
+
+
+def test_hilswarm_agent_checks_only_its_own_device(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = (DATA / "shared_serial.toml").read_text()
+    text = text.replace('link = "socket://127.0.0.1:5760"', 'link = "/dev/ttyUSB9"', 1)
+    path = tmp_path / "remote.toml"
+    path.write_text(text)  # the leader's board is on another machine
+    argv = ["agent", "--connect", "tcp/127.0.0.1:9", "--experiment", str(path), "--name", "f1"]
+    assert main([*argv, "--link", "f1=/dev/ttyUSB8"]) == 2  # f1's own device is checked here
+    err = capsys.readouterr().err
+    assert "agents.f1.link: serial device '/dev/ttyUSB8' does not exist" in err
+    assert "agents.leader.link" not in err

@@ -159,12 +159,12 @@ def test_overrides_replace_mode_duration_and_links(tmp_path: Path) -> None:
             "mode": "realtime",
             "duration_s": 5.0,
             "rate_hz": 50,
-            "links": {"b": "/dev/ttyUSB0"},
+            "links": {"b": "socket://127.0.0.1:5555"},
         },
     )
     assert experiment.mode == "realtime"
     assert experiment.duration_s == 5.0 and experiment.rate_hz == 50.0
-    assert experiment.agent("b").link == "/dev/ttyUSB0"
+    assert experiment.agent("b").link == "socket://127.0.0.1:5555"
     assert experiment.agent("a").link is None
 
     problems = problems_of(

@@ -88,10 +88,109 @@ def test_plot_cli(consensus_recording: Path, tmp_path: Path, capsys) -> None:
     printed = capsys.readouterr().out.split()
     assert str(out / "paths.png") in printed
     assert main(["plot", str(consensus_recording), "--out", str(out), "--xy", "0"]) == 2
-    assert "--xy must be two indices" in capsys.readouterr().err
+    assert "--xy must be two entries of y" in capsys.readouterr().err
     assert main(["plot", str(tmp_path / "missing.mcap"), "--out", str(out)]) == 2
 
 
 def test_bad_xy_raises(consensus_recording: Path, tmp_path: Path) -> None:
-    with pytest.raises(RecordingError, match="xy must be two entry indices"):
+    with pytest.raises(
+        RecordingError, match=r"y has no entry -1; valid: indices 0\.\.1 or names px"
+    ):
         plot_recording(consensus_recording, tmp_path, xy=(0, -1))
+
+
+@pytest.fixture(scope="module")
+def frisbee_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A lead/follow-like recording with names, units, a heading past ±π, a safe entry, an
+    e-stop and the tick ledger."""
+    experiment = load_experiment(GRAPHS / "lead_follow.toml")
+    path = tmp_path_factory.mktemp("plot") / "lf.mcap"
+    units = {"x": "m", "y": "m", "psi": "rad"}
+    with Recorder(path, experiment, log_time_ns=T0) as recorder:
+        recorder.write_message(
+            "/experiment",
+            {"k": 0, "t": 0.0, "values": [], "name": "lf",
+             "settings": {"rate_hz": experiment.rate_hz},
+             "graph": experiment.graph_dict(),
+             "agents": {s.name: {"params": s.params} for s in experiment.agents}},
+            log_time_ns=T0,
+        )  # fmt: skip
+        for name in experiment.agent_names:
+            recorder.add_topic(f"/{name}/y", fields=["x", "y", "psi"], units=units)
+            recorder.add_topic(
+                f"/{name}/u",
+                fields=["v_left", "v_right"],
+                units={"v_left": "m/s", "v_right": "m/s"},
+            )
+        for k in range(40):
+            t = k * experiment.dt
+            psi = 3.0 + 0.05 * k  # crosses +π: wrapped in the file, unwrapped in the plot
+            wrapped = (psi + np.pi) % (2 * np.pi) - np.pi
+            for name in experiment.agent_names:
+                recorder.write_vector(f"/{name}/y", k=k, t=t, values=[t, 0.0, wrapped],
+                                      log_time_ns=T0 + k)  # fmt: skip
+                recorder.write_vector(f"/{name}/u", k=k, t=t, values=[0.1, 0.1],
+                                      log_time_ns=T0 + k)  # fmt: skip
+            ledger = {"answer_s": 0.004, "compute_s": 0.001, "actuate_s": 0.0002,
+                      "link_s": 0.002, "sense_s": 0.0003, "bus_s": 0.0005, "skipped": 0,
+                      "retries": 0}  # fmt: skip
+            recorder.write_ticks(
+                k=k, t=t, log_time_ns=T0 + k,
+                timings={"completion_s": 0.004, "agents": {"leader": ledger, "f1": ledger}},
+            )  # fmt: skip
+        recorder.write_status("f1", state="safe", k=20, t=1.0, log_time_ns=T0, detail="battery")
+        recorder.write_status(
+            "orchestrator", state="estop", k=30, t=1.5, log_time_ns=T0, detail="button"
+        )
+    return path
+
+
+def test_plots_carry_units_unwrap_angles_and_mark_events(frisbee_recording: Path) -> None:
+    from hilswarm.orchestrator import plotting
+
+    data = plotting.load_recording(frisbee_recording)
+    assert [(e.state, e.agent, e.t) for e in data.events] == [
+        ("safe", "f1", 1.0), ("estop", "orchestrator", 1.5),
+    ]  # fmt: skip
+    outputs = plotting._signals_figure(data, data.outputs, "outputs", True)
+    assert [a.get_ylabel() for a in outputs.axes] == ["x [m]", "y [m]", "psi [rad]"]
+    assert all(a.get_xlabel() in ("", "experiment time t [s]") for a in outputs.axes)
+    heading = outputs.axes[2].lines[0].get_ydata()
+    assert np.all(np.abs(np.diff(heading)) < 0.1)  # no jump at ±π
+    inputs = plotting._signals_figure(data, data.inputs, "inputs", False)
+    assert [a.get_ylabel() for a in inputs.axes] == ["v_left [m/s]", "v_right [m/s]"]
+    ticks = plotting._ticks_figure(data, "ticks")
+    latency = plotting._latency_figure(data, "ledger")
+    for figure in (outputs, inputs, ticks, latency):
+        for axis in figure.axes:
+            if axis.get_xlabel() != "experiment time t [s]":
+                continue
+            marks = {
+                round(line.get_xdata()[0], 6)
+                for line in axis.lines
+                if line.get_linestyle() == ":" and len(set(line.get_xdata())) == 1
+            }
+            assert {1.0, 1.5} <= marks, (figure.texts, axis.get_ylabel())
+    deadline = [line for line in ticks.axes[0].lines if line.get_linestyle() == "--"]
+    assert deadline and deadline[0].get_ydata()[0] == pytest.approx(1e3 / 20.0)  # 50 ms
+    paths = plotting._paths_figure(data, (0, 1), "paths")
+    assert paths.axes[0].get_xlabel() == "x [m] (y[0])"
+    waypoints = [line for line in paths.axes[0].lines if line.get_marker() == "x"]
+    assert len(waypoints) == 1 and len(waypoints[0].get_xdata()) == 4  # the leader's square
+
+
+def test_unknown_names_exit_2_listing_the_valid_ones(
+    frisbee_recording: Path, tmp_path: Path, capsys
+) -> None:
+    for args, listed in (
+        (["--agent", "leadr"], "agents: leader, f1, f2"),
+        (["--xy", "0,7"], "valid: indices 0..2 or names x, y, psi"),
+        (["--xy", "x,z"], "valid: indices 0..2 or names x, y, psi"),
+        (["--field", "sii"], "fields of y and u: x, y, psi, v_left, v_right"),
+    ):
+        assert main(["plot", str(frisbee_recording), "--out", str(tmp_path), *args]) == 2
+        assert listed in capsys.readouterr().err
+    written = plot_recording(
+        frisbee_recording, tmp_path / "named", xy=("x", "y"), fields=["psi"], latency=True
+    )
+    assert [p.name for p in written] == ["outputs.png", "paths.png", "ticks.png", "latency.png"]

@@ -44,7 +44,9 @@ def agent_y_frame(i: int, k: int, dt: float, *, n_y: int = 3) -> bytes:
     """Agent ``i``'s y frame of tick ``k`` (``u`` and ``x_hat`` from tick 1 on)."""
     u = None if k == 0 else np.array([0.1 * i, -0.1 * k])
     x_hat = None if k == 0 else np.array([float(k), 0.5])
-    timing = bus.AgentTiming(compute_s=1e-4 * i, actuate_s=2e-4, sense_s=3e-4, skipped=i)
+    timing = bus.AgentTiming(
+        compute_s=1e-4 * i, actuate_s=2e-4, sense_s=3e-4, skipped=i, link_s=5e-4, retries=i
+    )
     payload = bus.encode_vector(k, k * dt, [float(i), k / 3, math.pi][:n_y])
     return y_frame(i, T0 + k, payload, bus.encode_report(timing, u, x_hat))
 
@@ -161,7 +163,8 @@ def test_frames_are_recorded_in_frame_order_however_they_arrive(
     }  # fmt: skip
     tick = by_topic["/orchestrator/ticks"][4]
     assert tick["agents"]["f1"] == {
-        "answer_s": 0.002, "sense_s": 3e-4, "compute_s": 1e-4, "actuate_s": 2e-4, "skipped": 1,
+        "answer_s": 0.002, "bus_s": 0.002 - (1e-4 + 2e-4 + 3e-4 + 5e-4), "compute_s": 1e-4,
+        "actuate_s": 2e-4, "link_s": 5e-4, "sense_s": 3e-4, "skipped": 1, "retries": 1,
     }  # fmt: skip
 
 
@@ -299,7 +302,7 @@ def test_y_frames_of_one_length_with_other_layouts(tmp_path: Path, experiment: E
     """Frames of equal length but other sizes of y, u and x_hat are read with their own."""
     timing = bus.AgentTiming(compute_s=1e-4, actuate_s=2e-4, sense_s=3e-4, skipped=0)
     shapes = [
-        (3, 2, 2), (3, 3, 1), (3, 1, 3), (3, 2, 2), (11, None, None), (7, 0, 0), (11, None, None),
+        (3, 2, 2), (3, 3, 1), (3, 1, 3), (3, 2, 2), (12, None, None), (7, 0, 0), (12, None, None),
         (3, 2, 2),
     ]  # fmt: skip
     frames, sent = [], []

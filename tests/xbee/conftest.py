@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -10,17 +9,11 @@ import zenoh
 from hilswarm.agents import bus
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 @pytest.fixture
 def client_session() -> Iterator[Callable[[], zenoh.Session]]:
     """Open client sessions (multicast scouting off) to a fresh router; all closed after."""
-    endpoint = bus.loopback_endpoint(_free_port())
-    router = bus.open_session(bus.listen_config([endpoint]))
+    router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+    (endpoint,) = bus.bound_endpoints(router)  # the free port the router bound
     sessions: list[zenoh.Session] = []
 
     def open_client() -> zenoh.Session:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -18,7 +19,7 @@ from hilswarm.agents.link.board import PinConfig, PinMode
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.xbee.api_frames import FrameFamily
 from hilswarm.agents.xbee.config import GatewayConfig
-from hilswarm.agents.xbee.gateway import Gateway
+from hilswarm.agents.xbee.gateway import Gateway, GatewayError
 from hilswarm.agents.xbee.sim_coordinator import SimCoordinator, SimRemote
 from hilswarm.agents.xbee.sim_robot import WireServerUart
 from hilswarm.agents.xbee.transport import board_from_url
@@ -134,3 +135,36 @@ def test_coordinator_unplugged_and_replugged(swarm: tuple) -> None:
     assert gateway.stats.reconnections == 1
     board.retries = 3
     board.exchange({5: 4}, [14])
+
+
+def test_gateway_puts_a_coordinator_in_the_other_api_mode_back_in_its_own(
+    client_session: Callable[[], zenoh.Session],
+) -> None:
+    sim = SimBoard(dt=0.05)
+    remote = SimRemote(ADDRS["r1"], WireServerUart(sim))
+    with SimCoordinator([remote], api_mode=2) as coordinator:
+        config = GatewayConfig(port="sim", api_mode=1)
+        session = client_session()
+        with Gateway(
+            config, bus.BusKeys(EXP), {"r1": ADDRS["r1"]}, session, port_url=coordinator.url
+        ):
+            assert coordinator.api_mode == 1
+            board = board_from_url(
+                f"xbee://{ADDRS['r1']:016X}", session=client_session(), experiment=EXP, agent="r1"
+            )
+            try:
+                board.open()
+                board.configure(PINS, watchdog_s=0.5)
+                board.exchange({5: 9}, [14])
+                assert sim.outputs[5] == 9
+            finally:
+                board.close()
+
+
+def test_no_coordinator_is_a_clear_error(
+    client_session: Callable[[], zenoh.Session], tmp_path: Path
+) -> None:
+    config = GatewayConfig(port=str(tmp_path / "ttyUSB7"))
+    gateway = Gateway(config, bus.BusKeys(EXP), {"r1": ADDRS["r1"]}, client_session())
+    with pytest.raises(GatewayError, match="cannot open the coordinator"):
+        gateway.start()

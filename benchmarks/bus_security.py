@@ -1,0 +1,83 @@
+"""What the bus's security costs: tick latency with authentication + access control on vs off.
+
+The same run as ``hilswarm run`` (agents, manager, recorder process; ``swarm_ticks.run_once``)
+is made in pairs: once as ``hilswarm run --insecure`` (no authentication, no access control)
+and once as ``hilswarm run`` by default (per-run user/password authentication, the router's
+default-deny access control with one principal per agent). The order alternates within each
+pair so a machine getting busier or quieter does not favour one side. Reported: p50/p99 tick
+completion per run, the median p50 of each side and their ratio (target: at most 1.05 at 16
+agents, 100 Hz), and the same for the orchestrator's CPU per tick (where Zenoh's router checks
+the access control of every message): on an overloaded machine late ticks make p50 ``inf``,
+while the CPU ratio still says what the checks cost.
+
+    python benchmarks/bus_security.py                  # 16 agents at 100 Hz, 3 pairs of 5 s
+    python benchmarks/bus_security.py --short          # CI-sized: 8 agents at 50 Hz, 1 pair
+    python benchmarks/bus_security.py --agents 32 --rate 50 --pairs 5
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import statistics
+import sys
+
+from swarm_ticks import HEADER, Result, run_once
+
+#: Target: authentication + access control add at most this fraction to the p50.
+TARGET_RATIO = 1.05
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--agents", type=int, default=16)
+    parser.add_argument("--rate", type=float, default=100.0, help="tick rate [Hz]")
+    parser.add_argument("--seconds", type=float, default=5.0, help="length of each run [s]")
+    parser.add_argument("--pairs", type=int, default=3, help="pairs of runs (off, on)")
+    parser.add_argument(
+        "--vehicle", choices=("frisbee", "simulated"), default="frisbee", help="fleet"
+    )
+    parser.add_argument("--short", action="store_true", help="CI-sized run (< 1 min)")
+    args = parser.parse_args(argv)
+    if args.short:
+        args.agents, args.rate, args.seconds, args.pairs = 8, 50.0, 3.0, 1
+    print(
+        f"{args.agents} agents at {args.rate:g} Hz realtime, {args.vehicle}, {args.pairs} "
+        f"pair(s) of {args.seconds:g} s runs; {os.cpu_count()} CPUs; load "
+        f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}"
+    )
+    print(f"{'security':8} {HEADER}", flush=True)
+    p50: dict[bool, list[float]] = {False: [], True: []}
+    cpu: dict[bool, list[float]] = {False: [], True: []}
+    for pair in range(args.pairs):
+        order = (False, True) if pair % 2 == 0 else (True, False)
+        for secure in order:
+            result: Result = run_once(
+                n=args.agents, rate_hz=args.rate, mode="realtime", seconds=args.seconds,
+                record="process", vehicle=args.vehicle, secure=secure,
+            )  # fmt: skip
+            p50[secure].append(result.summary.completion_percentiles()[0])
+            cpu[secure].append(result.manager_cpu_s)
+            print(f"{'on' if secure else 'off':8} {result.row()}", flush=True)
+    off, on = statistics.median(p50[False]), statistics.median(p50[True])
+    ratio = on / off if 0 < off < float("inf") else float("nan")
+    verdict = "MET" if ratio <= TARGET_RATIO else "MISSED"
+    print(
+        f"median p50: off {off * 1e3:.3f} ms, on {on * 1e3:.3f} ms; ratio on/off {ratio:.3f} "
+        f"(target <= {TARGET_RATIO}: {verdict})"
+    )
+    cpu_off, cpu_on = statistics.median(cpu[False]), statistics.median(cpu[True])
+    print(
+        f"median orchestrator CPU per tick: off {cpu_off * 1e3:.3f} ms, on {cpu_on * 1e3:.3f} ms;"
+        f" ratio on/off {cpu_on / cpu_off if cpu_off > 0 else float('nan'):.3f}; load now "
+        f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.ERROR)
+    sys.exit(main())

@@ -1,0 +1,92 @@
+"""The agent fork server: real forked processes, their titles, sessions and exit codes."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from hilswarm.agents.spawner import UNKNOWN_EXIT, ForkServer, SpawnError
+
+pytestmark = pytest.mark.integration
+
+CHILD = """
+import pathlib, sys, time
+
+def main(argv):
+    out = pathlib.Path(argv[0])
+    out.write_text(" ".join(argv[1:]))
+    if argv[1] == "exit":
+        return int(argv[2])
+    if argv[1] == "raise":
+        raise RuntimeError("boom")
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        time.sleep(0.05)
+    return 0
+"""
+
+
+def wait_until(condition, timeout_s: float, what: str) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.02)
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[ForkServer]:
+    (tmp_path / "toychild.py").write_text(CHILD, encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    fork_server = ForkServer(env=env, preload=["toychild"])
+    yield fork_server
+    fork_server.close()
+
+
+def test_child_runs_main_with_its_title_in_its_own_session(
+    server: ForkServer, tmp_path: Path
+) -> None:
+    out = tmp_path / "argv.txt"
+    child = server.spawn("toychild", [str(out), "wait", "x"], title="toy --name a --experiment e")
+    try:
+        wait_until(out.exists, 20, "the child's output")
+        assert out.read_text() == "wait x"
+        assert os.getsid(child.pid) == child.pid  # its own session and process group
+        title = Path(f"/proc/{child.pid}/cmdline").read_bytes()
+        assert b"toy --name a --experiment e" in title
+        assert child.poll() is None
+        with pytest.raises(subprocess.TimeoutExpired):
+            child.wait(0.05)
+    finally:
+        child.kill()
+    assert child.wait(10) == -signal.SIGKILL
+
+
+def test_exit_codes_are_reported_like_popen(server: ForkServer, tmp_path: Path) -> None:
+    exited = server.spawn("toychild", [str(tmp_path / "a"), "exit", "3"], title="a")
+    crashed = server.spawn("toychild", [str(tmp_path / "b"), "raise"], title="b")
+    assert exited.wait(20) == 3
+    assert crashed.wait(20) == 1
+    assert exited.poll() == 3
+
+
+def test_children_outlive_a_killed_server_and_are_still_watched(
+    server: ForkServer, tmp_path: Path
+) -> None:
+    out = tmp_path / "argv.txt"
+    child = server.spawn("toychild", [str(out), "wait"], title="c")
+    wait_until(out.exists, 20, "the child's output")
+    server._process.kill()
+    wait_until(lambda: server.gone, 10, "the server to be seen gone")
+    assert child.poll() is None  # still running: the launcher stops it by its group
+    with pytest.raises(SpawnError):
+        server.spawn("toychild", [str(out), "wait"], title="d")
+    os.killpg(child.pid, signal.SIGKILL)
+    wait_until(lambda: child.poll() is not None, 10, "the orphan's end")
+    assert child.returncode == UNKNOWN_EXIT
