@@ -145,16 +145,12 @@ class _QuitRequestedError(HilswarmError, RuntimeError):
     """Internal: the worker was told to quit while riding out a board link fault."""
 
 
-class _LinkDownError(HilswarmError, ConnectionError):
-    """Internal: the board link failed for good; ticks answer without it."""
-
-
 # ---------------------------------------------------------------------------------------------
 # The agent
 # ---------------------------------------------------------------------------------------------
 
 # Main-thread queue items: (kind, payload...). Rare: never one per tick.
-_SET, _MANAGER_GONE, _SIGNAL, _FAILED, _WAKE = range(5)
+_MANAGER_GONE, _SIGNAL, _FAILED, _WAKE = range(4)
 # Worker queue items: ``None`` (ticks may be ready) or (kind, payload...).
 _W_SET, _W_CONTROL, _W_ESTOP, _W_QUIT = range(4)
 
@@ -226,6 +222,7 @@ class Agent:
         self._telemetry_due = math.inf  # wall clock [s, self._clock] of the next batch
         self.telemetry_batches = 0
         self._counters_published: tuple[int, ...] = ()
+        self._counters_due = -math.inf  # clock [s] of the next counters check
         self._extra_listeners: tuple[threading.Event, threading.Event] = (
             threading.Event(),
             threading.Event(),
@@ -320,7 +317,12 @@ class Agent:
         self._status_pub.put(bus.encode_json(message))
 
     def _publish_changed_counters(self) -> None:
-        """A status of kind ``inputs`` when the counters changed since the last one."""
+        """A status of kind ``inputs`` when the counters changed since the last one (at most
+        once per :data:`COUNTERS_PERIOD_S`)."""
+        now = self._clock()
+        if now < self._counters_due:
+            return
+        self._counters_due = now + COUNTERS_PERIOD_S
         with self._engine_lock:
             snapshot = (
                 *self.engine.dropped.values(),
@@ -787,10 +789,8 @@ class Agent:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
                 self._u = u_new
-            if self._link_down:
-                raise _LinkDownError("the board link is down")
             t_link = clock()
-            if k > 0:  # tick 0 senses what connect() primed: the initial state
+            if k > 0 and not self._link_down:  # tick 0 senses what connect() primed
                 try:
                     vehicle.exchange()
                 except LINK_FAULTS as exc:
@@ -802,9 +802,6 @@ class Agent:
                 y = np.asarray(y, dtype=np.float64)
         except _QuitRequestedError:
             raise
-        except _LinkDownError:  # safe already; no data, and no wait on the dead link
-            t2 = clock()
-            y = np.full(int(vehicle.n_outputs), np.nan)
         except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
             t2 = clock()
             if isinstance(exc, LINK_FAULTS):

@@ -114,7 +114,7 @@ def test_a_stalled_board_degrades_the_agent_which_reconnects_and_rejoins(
     os.kill(pid, signal.SIGSTOP)
     try:
         rig.tick(6)
-        wait_for(lambda: rig.state() == "degraded", 10, "the degraded status")
+        wait_for(lambda: "degraded" in rig.states(), 10, "the degraded status")
         wait_for(lambda: rig.agent.link_faults == 1, 5, "the link fault to be counted")
         time.sleep(1.0)  # the board stays stalled a while; the agent must stay on the bus
         assert rig.thread.is_alive() and 6 not in rig.answered()
@@ -139,7 +139,7 @@ def test_a_killed_simulator_is_restarted_and_the_agent_rejoins(rigs: list[Rig]) 
     old_pid = board.harness.process.pid
     os.killpg(old_pid, signal.SIGKILL)
     rig.tick(6)
-    wait_for(lambda: rig.state() == "degraded", 10, "the degraded status")
+    wait_for(lambda: "degraded" in rig.states(), 10, "the degraded status")
     wait_for(lambda: 6 in rig.answered(), 20, "the answer to tick 6 on a new simulator")
     assert board.harness.process.pid != old_pid
     rig.run_ticks(7, 20)
@@ -164,7 +164,7 @@ def test_an_unplugged_socket_board_coming_back_in_time_is_rejoined(rigs: list[Ri
         rig.run_ticks(0, 5)
         server.stop()  # unplugged
         rig.tick(6)
-        wait_for(lambda: rig.state() == "degraded", 10, "the degraded status")
+        wait_for(lambda: "degraded" in rig.states(), 10, "the degraded status")
         server.start()  # plugged in again, same port
         wait_for(lambda: 6 in rig.answered(), 15, "the answer to tick 6")
         rig.run_ticks(7, 20)
@@ -246,3 +246,34 @@ def test_a_stalled_simavr_board_does_not_end_a_realtime_run(
         assert "lost" not in states and states[-2:] == ["safe", "stopped"], (name, states)
     assert recording["/leader/y"][-1]["k"] >= 150, output  # it rejoined and ran to the end
     assert code in (0, 3), output  # 3: completed, degraded (where the run reports that)
+
+
+@pytest.mark.parametrize("how", ["stop command", "SIGTERM"])
+def test_stop_and_sigterm_stop_an_agent_whose_exchange_hangs(rigs: list[Rig], how: str) -> None:
+    """A board that never answers (each exchange would wait 11 x 1 s): STOP, or the SIGTERM
+    handler's request, still ends the agent within a couple of seconds, outputs safe."""
+    sim = SimBoard(plant=FullBattery(), dt=DT)
+    server = SocketWireServer(sim).start()
+    try:
+        board = SerialBoard(server.url, timeout_s=1.0, retries=10, reconnect_timeout_s=5.0)
+        rig = Rig(cart_config(link=server.url), cart_hardware(board))
+        rigs.append(rig)
+        rig.run_ticks(0, 3)
+        assert driving(sim.outputs)
+        server.server.faults.drop_replies = 10**6
+        seen = server.server.stats.requests
+        rig.tick(4)
+        wait_for(lambda: server.server.stats.requests > seen, 10, "the exchange of tick 4")
+        started = time.monotonic()
+        if how == "SIGTERM":
+            rig.agent.request_stop("signal SIGTERM")  # what the agent's signal handler does
+        else:
+            rig.control(bus.ControlCommand.STOP, "test stop")
+        rig.thread.join(10)
+        assert not rig.thread.is_alive()
+        assert time.monotonic() - started < 3.0
+        assert rig.exit_status == [0]
+        wait_for(lambda: rig.states()[-2:] == ["safe", "stopped"], 5, "safe, then stopped")
+        assert safe(sim.outputs)  # the e-stop frame still reached the board
+    finally:
+        server.stop()
