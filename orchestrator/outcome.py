@@ -177,6 +177,8 @@ def decide(
             span = ""
             if recording.lost_ticks:
                 first, last = recording.lost_ticks
+                # the manager's last batch carries the tick after the last one: no such tick
+                last = max(first, min(last, last_tick))
                 seconds = f", {(last - first + 1) * summary.dt_s:.2f} s" if summary.dt_s else ""
                 span = f" ({_ticks(first, last)}{seconds})"
             degradations.append(f"recording: {recording.lost_records} records lost{span}")

@@ -779,12 +779,48 @@ def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], 
     return frames.frames
 
 
+class _RepeatFilter(logging.Filter):
+    """Shows each message of the foxglove SDK once: on a full disk it logs every message it
+    could not write (hundreds a second); the repeats are counted instead."""
+
+    #: Distinct messages remembered (beyond it, new ones are shown and not remembered).
+    MAX_REMEMBERED = 100
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._seen: set[str] = set()
+        self.repeats = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.name.startswith("foxglove"):
+            return True
+        text = record.getMessage()
+        if text in self._seen:
+            self.repeats += 1
+            return False
+        if len(self._seen) < self.MAX_REMEMBERED:
+            self._seen.add(text)
+        return True
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m hilswarm.orchestrator.recorder_process``."""
     del argv
     logging.basicConfig(
         level=logging.WARNING, format="%(asctime)s %(levelname)s recorder %(name)s: %(message)s"
     )
+    repeats = _RepeatFilter()
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(repeats)
+    try:
+        return _main()
+    finally:
+        if repeats.repeats:
+            logger.warning("%d repeated foxglove messages not shown", repeats.repeats)
+
+
+def _main() -> int:
+    """:func:`main` once logging is set up."""
     # Stopping is the orchestrator's job: it closes the pipe after the last record.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Not on the real-time path: let the agents and the manager have the CPU first.
