@@ -8,8 +8,9 @@ the mocap process with the real client library (qtm-rt, Kalman filter, one messa
 on the bus); one process per agent, each receiving its own body; the instance manager ticking
 on the wall clock; the recorder writing an MCAP file. The benchmark then reads, from that
 file, what every agent recorded on every tick: ``/<agent>/telemetry/mocap`` ``latency_s``,
-**frame time to the sense that feeds the controller** (the pose the controller is handed on
-that tick). p50/p99 are over every tick of every agent after a warm-up.
+**frame time to the sense that feeds the controller** (the pose in ``y_k``; the controller
+steps on ``y_k`` at the next tick, ``u_{k+1} = f(y_k)``, one control period later, which is not
+counted). p50/p99 are over every tick of every agent after a warm-up.
 
 Clocks: the frame time is the simulator's camera time stamp, read from CLOCK_MONOTONIC
 (``time.monotonic_ns``) when it builds the frame; the sense time is the agent's
@@ -26,10 +27,9 @@ i.e. ticks that used the newest frame the cameras had taken. With the ticks at e
 phases of the frame period, a tick misses the newest frame exactly when it comes less than the
 delivery time after that frame, so ``delivery_mean_ms`` = frame period x (1 - ``within_frame``)
 estimates the mean delivery frame time -> pose stored in the agent (valid while deliveries stay
-under one frame period). The control rate (default 23 Hz)
-is chosen so that the ticks sample every phase of the frame period evenly: the figures cover
-every phase, not the one phase that chance set at start (as a control rate dividing the frame
-rate, e.g. 20 Hz, would).
+under one frame period). The control rate (default 23 Hz) is chosen so that the ticks sample
+every phase of the frame period evenly: the figures cover every phase, not the one phase that
+chance set at start (as a control rate dividing the frame rate, e.g. 20 Hz, would).
 
 Also measured (unless ``--no-subscriber``), and labelled "subscriber": the same simulator and
 mocap process with no run and no agent, and one subscription per body in this benchmark's
@@ -205,7 +205,9 @@ def run_experiment(folder: Path, experiment: Path, seconds: float) -> tuple[int,
         except subprocess.TimeoutExpired:
             for pid in [*descendants(process.pid), process.pid]:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
-                    os.killpg(pid, signal.SIGKILL)
+                    os.killpg(pid, signal.SIGKILL)  # agents run in process groups of their own
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.kill(pid, signal.SIGKILL)
             process.wait(10.0)
             status = -signal.SIGKILL
     tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:])
