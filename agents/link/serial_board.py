@@ -20,8 +20,8 @@ Reliability:
   latched across reconnections; :meth:`SerialBoard.abort` makes a blocked request or
   reconnection give up within one poll period. Everything else is for one thread at a time.
 * **Handshake.** HELLO is repeated for up to ``open_timeout_s`` (an Arduino resets when its port
-  is opened and its bootloader runs first); the protocol version must be
-  :data:`~.board.PROTOCOL_VERSION` and, if ``board_id`` is given, the board's id must match,
+  is opened and its bootloader runs first); the protocol version must be one of
+  :data:`~.board.SUPPORTED_PROTOCOL_VERSIONS` and, if ``board_id`` is given, the board's id must match,
   else :class:`ProtocolError` names both.
 
 Speed: a TICK round trip is the protocol's hot path. Its request is packed by a
@@ -58,7 +58,7 @@ from hilswarm.agents.errors import (
     WireFormatError,
 )
 from hilswarm.agents.link.board import (
-    PROTOCOL_VERSION,
+    SUPPORTED_PROTOCOL_VERSIONS,
     Board,
     BoardInfo,
     BoardStatus,
@@ -460,10 +460,11 @@ class SerialBoard(Board):
             raise self._request_error(reply, HelloMsg.msg_type)
         if not isinstance(reply, HelloReplyMsg):
             raise ProtocolError(f"{self.url}: HELLO answered with {reply!r}")
-        if reply.protocol_version != PROTOCOL_VERSION:
+        if reply.protocol_version not in SUPPORTED_PROTOCOL_VERSIONS:
             raise ProtocolError(
                 f"{self.url}: board speaks protocol version {reply.protocol_version}, this host "
-                f"speaks version {PROTOCOL_VERSION} (update the firmware or hilswarm)"
+                f"speaks versions {sorted(SUPPORTED_PROTOCOL_VERSIONS)} (update the firmware "
+                "or hilswarm)"
             )
         if self.expected_board_id is not None and reply.board_id != self.expected_board_id:
             raise ProtocolError(
