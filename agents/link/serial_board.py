@@ -233,6 +233,9 @@ class SerialBoard(Board):
         self.link_timeout_s = reconnect_timeout_s
         self.baudrate = baudrate
         self.expected_board_id = board_id
+        #: Broadcast id sent with every CONFIG (protocol 2; 0 = none, a protocol-1 CONFIG). A
+        #: gateway in broadcast mode adds it itself; set it to send packed broadcasts directly.
+        self.bcast_id = 0
         self.timeout_s = timeout_s
         self.retries = retries
         self.open_timeout_s = open_timeout_s
@@ -642,7 +645,9 @@ class SerialBoard(Board):
     def _config_payload(self, pins: Sequence[PinConfig], watchdog_ms: int) -> bytes:
         entries = tuple(ConfigEntry(p.pin, int(p.mode), p.safe_value) for p in pins)
         try:
-            return encode_payload(ConfigMsg(self._next_seq(), watchdog_ms, entries))
+            return encode_payload(
+                ConfigMsg(self._next_seq(), watchdog_ms, entries, self.bcast_id)
+            )
         except WireFormatError as exc:
             raise BoardRequestError(
                 f"{self.url}: CONFIG cannot be encoded: {exc}", code=exc.code, pin=None
