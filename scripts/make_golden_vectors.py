@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from hilswarm.agents.link.board import PROTOCOL_VERSION, BoardStatus, ErrorCode, PinMode
-from hilswarm.agents.link.cobs import cobs_encode
 from hilswarm.agents.link.broadcast import SectionLayout
+from hilswarm.agents.link.cobs import cobs_encode
 from hilswarm.agents.link.codec import (
     BcastMsg,
     BcastReplyMsg,

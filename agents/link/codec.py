@@ -579,7 +579,9 @@ def parse_bcast_body(seq: int, body: bytes) -> BcastMsg:
         hdr = body[index + 1]
         end = index + 2 + (hdr & BCAST_LENGTH_MASK)
         if end > len(body):
-            raise _bad_length(MsgType.BCAST, f"{end - index - 2} data bytes in a section", len(body))
+            raise _bad_length(
+                MsgType.BCAST, f"{end - index - 2} data bytes in a section", len(body)
+            )
         sections.append(
             BcastSection(body[index], bool(hdr & BCAST_REPLY_FLAG), bytes(body[index + 2 : end]))
         )

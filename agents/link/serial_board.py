@@ -645,9 +645,7 @@ class SerialBoard(Board):
     def _config_payload(self, pins: Sequence[PinConfig], watchdog_ms: int) -> bytes:
         entries = tuple(ConfigEntry(p.pin, int(p.mode), p.safe_value) for p in pins)
         try:
-            return encode_payload(
-                ConfigMsg(self._next_seq(), watchdog_ms, entries, self.bcast_id)
-            )
+            return encode_payload(ConfigMsg(self._next_seq(), watchdog_ms, entries, self.bcast_id))
         except WireFormatError as exc:
             raise BoardRequestError(
                 f"{self.url}: CONFIG cannot be encoded: {exc}", code=exc.code, pin=None
