@@ -21,8 +21,8 @@ Reliability:
   reconnection give up within one poll period. Everything else is for one thread at a time.
 * **Handshake.** HELLO is repeated for up to ``open_timeout_s`` (an Arduino resets when its port
   is opened and its bootloader runs first); the protocol version must be one of
-  :data:`~.board.SUPPORTED_PROTOCOL_VERSIONS` and, if ``board_id`` is given, the board's id must match,
-  else :class:`ProtocolError` names both.
+  :data:`~.board.SUPPORTED_PROTOCOL_VERSIONS` and, if ``board_id`` is given, the board's id
+  must match, else :class:`ProtocolError` names both.
 
 Speed: a TICK round trip is the protocol's hot path. Its request is packed by a
 :class:`~.codec.TickLayout` cached per (written pins, read pins), the bytes go straight through
