@@ -6,6 +6,7 @@
     port = "/dev/ttyUSB0"     # any pyserial URL; "sim" = a simulated coordinator and air
     baud = 115200             # host UART rate of the coordinator [baud]
     api_mode = 1              # 1 = API, 2 = API with escaping
+    mode = "unicast"          # or "broadcast": one packed BCAST per tick (protocol 2 robots)
     # only for port = "sim":
     family = "802.15.4"       # or "zigbee": the frame family the simulated radios speak
     seed = 0                  # seed of the simulated air (backoffs, losses)
@@ -31,6 +32,8 @@ from hilswarm.agents.xbee.sim_coordinator import BAUD_CODES
 
 #: ``port`` value that asks for the simulated coordinator.
 SIM_PORT = "sim"
+#: ``mode`` values: one request and one reply per robot and tick, or the packed broadcast.
+MODES = ("unicast", "broadcast")
 _ADDRESS_RE = re.compile(r"^(0x)?[0-9A-Fa-f]{1,16}$")
 
 
@@ -46,6 +49,8 @@ class GatewayConfig:
         port: pyserial URL or device of the coordinator; ``"sim"`` for the simulated one.
         baud: host UART rate [baud].
         api_mode: 1 (API) or 2 (API with escaping).
+        mode: ``"unicast"`` (a TICK and its reply per robot and tick) or ``"broadcast"`` (the
+            agents' TICKs of a tick packed into one BCAST, replies decimated; docs/xbee.md).
         family: frame family of the simulated radios (``port = "sim"`` only).
         seed: seed of the simulated air.
         loss: loss probability of each frame on every simulated link.
@@ -54,6 +59,7 @@ class GatewayConfig:
     port: str = SIM_PORT
     baud: int = 115200
     api_mode: int = 1
+    mode: str = "unicast"
     family: str = FrameFamily.IEEE_802_15_4.value
     seed: int = 0
     loss: float = 0.0
@@ -69,6 +75,10 @@ class GatewayConfig:
         if self.api_mode not in (1, 2):
             raise GatewayConfigError(
                 f"[gateway] api_mode = {self.api_mode!r}: use 1 (API) or 2 (API, escaped)"
+            )
+        if self.mode not in MODES:
+            raise GatewayConfigError(
+                f"[gateway] mode = {self.mode!r}: use {' or '.join(repr(m) for m in MODES)}"
             )
         if self.family not in {f.value for f in FrameFamily}:
             raise GatewayConfigError(
@@ -87,7 +97,7 @@ class GatewayConfig:
     def from_table(cls, table: Mapping[str, Any] | None) -> GatewayConfig:
         """Build from an experiment file's ``[gateway]`` table (``None``: the defaults)."""
         table = dict(table or {})
-        known = {"port", "baud", "api_mode", "family", "seed", "loss"}
+        known = {"port", "baud", "api_mode", "mode", "family", "seed", "loss"}
         unknown = sorted(set(table) - known)
         if unknown:
             raise GatewayConfigError(
