@@ -141,7 +141,7 @@ class BroadcastPacker:
         reply_every: agent name -> m (its robot answers every m-th round); absent: 1.
         period_s: the experiment's tick period [s].
         gather_s: how long a round waits for the expected TICKs after its first [s]
-            (default: a quarter of the period).
+            (default: half the period).
     """
 
     def __init__(
@@ -159,7 +159,7 @@ class BroadcastPacker:
             name: _Robot(name, i, max(1, int(every.get(name, 1)))) for i, name in enumerate(robots)
         }
         self.period_s = period_s
-        self.gather_s = period_s / 4 if gather_s is None else gather_s
+        self.gather_s = period_s / 2 if gather_s is None else gather_s
         self.rounds = 0
         self.frames = 0
         self._seq = 0
