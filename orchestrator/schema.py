@@ -260,6 +260,9 @@ class GatewaySection(_Table):
     mode: Literal["unicast", "broadcast"] = "unicast"
     """unicast: a TICK and its reply per robot and tick; broadcast: every robot's outputs of a
     tick in one packed BCAST frame (firmware protocol 2), replies every reply_every-th tick."""
+    answer: Literal["wait", "at_once"] = "wait"
+    """mode = "broadcast": on its reply ticks an agent waits for its robot's own reply (wait),
+    or every TICK is answered at once with the newest samples, marked stale (at_once)."""
     family: Literal["802.15.4", "zigbee"] = "802.15.4"
     """port = "sim": the frame family the simulated radios speak."""
     seed: int = Field(0, ge=0)

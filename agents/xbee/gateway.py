@@ -172,7 +172,12 @@ class Gateway:
         self._ticks: queue.SimpleQueue[tuple[int, float]] = queue.SimpleQueue()
         #: Broadcast mode (``[gateway] mode = "broadcast"``): the TICK packer, else ``None``.
         self.packer = (
-            BroadcastPacker(sorted(self.robots), reply_every=reply_every, period_s=1.0 / rate_hz)
+            BroadcastPacker(
+                sorted(self.robots),
+                reply_every=reply_every,
+                period_s=1.0 / rate_hz,
+                answer=config.answer,
+            )
             if config.mode == "broadcast"
             else None
         )

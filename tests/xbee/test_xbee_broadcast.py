@@ -58,11 +58,12 @@ def _swarm(
     client_session: Callable[[], zenoh.Session],
     sims: Mapping[str, SimBoard],
     reply_every: Mapping[str, int],
+    answer: str = "wait",
 ) -> Swarm:
     remotes = [SimRemote(ADDRS[n], WireServerUart(sims[n]), node_id=n) for n in sims]
     coordinator = stack.enter_context(SimCoordinator(remotes, api_mode=2, seed=5))
     gateway = Gateway(
-        GatewayConfig(port="sim", api_mode=2, mode="broadcast"),
+        GatewayConfig(port="sim", api_mode=2, mode="broadcast", answer=answer),
         bus.BusKeys(EXP),
         {n: ADDRS[n] for n in sims},
         client_session(),
@@ -195,3 +196,48 @@ def test_a_protocol_1_robot_stays_on_unicast(client_session: Callable[[], zenoh.
         assert gateway.stats.robots["r2"].sections == 0
         assert gateway.stats.robots["r2"].tx_frames >= 2 + 5  # HELLO, CONFIG, the TICKs
         assert gateway.stats.robots["r1"].sections >= 5
+
+
+def test_answer_at_once_every_sample_stale_refreshed_by_the_decimated_replies(
+    client_session: Callable[[], zenoh.Session],
+) -> None:
+    with ExitStack() as stack:
+        sims = {name: SimBoard(dt=0.05) for name in ADDRS}
+        names = sorted(ADDRS)
+        coordinator, _gateway, boards, _ = _swarm(
+            stack, client_session, sims, dict.fromkeys(ADDRS, 2), answer="at_once"
+        )
+
+        def applied(writes: dict[str, dict[int, int]]) -> None:
+            """Pace the ticks to the radio: each robot drives this tick's outputs (at once,
+            nothing else would: the answers do not wait for the air)."""
+            _wait(
+                lambda: all({p: sims[n].outputs[p] for p in (5, 7, 9)} == writes[n] for n in names),
+                5.0,
+                "the tick's outputs on every robot",
+            )
+
+        sims["r2"].set_analog_input(14, 1.0)
+        first = _tick(boards, _writes(0, names))  # the first answer waits for the robot
+        assert all(not r.status & BoardStatus.STALE for r in first.values())  # type: ignore[union-attr]
+        sims["r2"].set_analog_input(14, 4.0)
+        seen: list[int] = []
+        for k in range(1, 12):
+            replies = _tick(boards, _writes(k, names))
+            applied(_writes(k, names))
+            for name, reply in replies.items():
+                assert isinstance(reply, TickReply), (k, name, reply)
+                assert reply.status & BoardStatus.STALE  # never passed off as fresh
+            seen.append(replies["r2"].samples[14])  # type: ignore[union-attr]
+        assert abs(seen[0] - 205) <= 3  # 1.0 V, taken before the change
+        assert abs(seen[-1] - 819) <= 3  # 4.0 V: a later decimated reply refreshed it
+        # a robot whose replies stop: its agent is answered no more, times out
+        coordinator.set_loss(ADDRS["r3"], 1.0)
+        for k in range(12, 40):
+            results = _tick(boards, _writes(k, names))
+            assert isinstance(results["r1"], TickReply)
+            _wait(lambda k=k: sims["r1"].outputs[5] == _writes(k, names)["r1"][5], 5.0, "r1")
+            if isinstance(results["r3"], BoardTimeoutError):
+                break
+        else:
+            raise AssertionError("r3's agent was answered at once forever")
