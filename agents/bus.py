@@ -50,9 +50,12 @@ scouting and gossip are off; the link lease is short (1 s) so that a hung proces
 quickly; :class:`SessionSecurity` adds Zenoh's user/password authentication, TLS and the
 router's access control (see docs/security.md).
 
-:data:`LEAN_RUNTIME` hands Zenoh's runtime pools over to one application worker thread (the
-``ZENOH_RUNTIME`` environment variable): a client then runs 4 threads instead of 9. It is safe
-only where no bus callback blocks (one blocked callback would starve the lease keep-alives).
+:data:`LEAN_RUNTIME` runs Zenoh's receiving side on one application worker thread and its
+transmitting side on one more (the ``ZENOH_RUNTIME`` environment variable): a client then runs
+5 threads instead of 9, with fewer thread switches per message. :func:`open_session` applies it
+in every hilswarm process unless ``ZENOH_RUNTIME`` is already set (a user's own setting wins).
+It needs bus callbacks that never block, which every hilswarm callback keeps to: they hand
+their work to a thread (the agent's worker, the manager's ticking thread) or store a value.
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ import base64
 import enum
 import json
 import logging
+import os
 import re
 import struct
 from collections.abc import Iterable, Mapping, Sequence
@@ -775,19 +779,35 @@ def has_subscribers(publisher: zenoh.Publisher) -> bool:
 
 
 #: Zenoh runtime pools for hilswarm processes (the ``ZENOH_RUNTIME`` environment variable,
-#: read when a process opens its first session): every pool handed over to one worker thread.
+#: read when a process opens its first session): accepting, receiving and the network pools
+#: handed over to one application worker; transmitting keeps a thread of its own. Measured
+#: against Zenoh's defaults in docs/running.md ("Zenoh runtime threads"): fewer threads and
+#: thread switches per message. The transmit pool stays apart because a router forwards from
+#: its receive tasks into queues that only transmit tasks drain: on one shared worker a full
+#: queue (a large message to a busy agent) blocks the worker that would drain it, and every
+#: link's lease runs out (found by tests/integration/test_swarm_runtime.py's 100 kB inputs).
 LEAN_RUNTIME = (
-    "(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), "
-    "rx: (handover: app), net: (handover: app))"
+    "(app: (worker_threads: 1), acc: (handover: app), rx: (handover: app), "
+    "net: (handover: app), tx: (worker_threads: 1))"
 )
+
+
+def use_lean_runtime() -> None:
+    """Give this process :data:`LEAN_RUNTIME` unless ``ZENOH_RUNTIME`` is set already.
+
+    Effective until the process's first session opens (Zenoh reads it then); inherited by the
+    processes it starts.
+    """
+    os.environ.setdefault("ZENOH_RUNTIME", LEAN_RUNTIME)
 
 
 def open_session(config: zenoh.Config) -> zenoh.Session:
     """Open a Zenoh session, turning Zenoh's errors into :class:`BusConnectionError`.
 
     The message says what went wrong in the user's terms; Zenoh's own text goes to the debug
-    log only.
+    log only. The process's Zenoh runtime is :data:`LEAN_RUNTIME` (see :func:`use_lean_runtime`).
     """
+    use_lean_runtime()
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:

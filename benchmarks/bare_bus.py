@@ -36,9 +36,11 @@ import os
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -60,6 +62,7 @@ class BareResult:
     completion_s: np.ndarray  # per complete tick [s]
     wall_s: float
     startup_s: float = float("nan")  # first client started to every client alive [s]
+    client_cpu_s: float = float("nan")  # one client process's CPU per tick [s] (mean)
 
     @property
     def late_fraction(self) -> float:
@@ -77,6 +80,61 @@ class BareResult:
             return float("nan"), float("nan")
         p50, p99 = np.percentile(values, [50, 99], method="inverted_cdf")
         return float(p50) * 1e3, float(p99) * 1e3
+
+
+def process_cpu_s(pid: int) -> float | None:
+    """User + system CPU of process ``pid`` so far [s]; ``None`` when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class CpuSampler:
+    """CPU time of a set of processes over a run, read from ``/proc`` every ``period_s``.
+
+    A process that exits is counted up to its last reading (processes the runtime forks are
+    reaped at once, so their CPU cannot be read after the run). Start it once the processes
+    are up, stop it when the run's ticks are done.
+    """
+
+    def __init__(self, pids: list[int], period_s: float = 0.1) -> None:
+        self._first = {pid: process_cpu_s(pid) for pid in pids}
+        self._last = dict(self._first)
+        self._period_s = period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+
+    def start(self) -> CpuSampler:
+        """Start sampling (returns itself)."""
+        self._thread.start()
+        return self
+
+    def _read(self) -> None:
+        for pid in self._last:
+            value = process_cpu_s(pid)
+            if value is not None:
+                self._last[pid] = value
+
+    def _sample(self) -> None:
+        while not self._stop.wait(self._period_s):
+            self._read()
+
+    def stop(self) -> None:
+        """Take a last reading and stop sampling (idempotent)."""
+        if not self._stop.is_set():
+            self._stop.set()
+            self._thread.join(5)
+            self._read()
+
+    def total_s(self) -> float:
+        """CPU of every process between start and stop [s]."""
+        return sum(
+            last - first
+            for first, last in zip(self._first.values(), self._last.values(), strict=True)
+            if first is not None and last is not None
+        )
 
 
 def _ring_neighbours(index: int, n: int) -> list[int]:
@@ -179,6 +237,7 @@ def run_bare(
     lockstep: bool,
     self_clocked: bool = False,
     window: int = 0,
+    unix: bool = False,
 ) -> BareResult:
     """Start the router and ``n`` client processes, tick, and return the figures.
 
@@ -190,8 +249,10 @@ def run_bare(
     if window and not lockstep:
         raise ValueError("window is a lockstep pattern")
     keys = bus.BusKeys("bare")
-    session = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
-    endpoint = bus.bound_endpoints(session)[0]  # the free port the router bound
+    folder = tempfile.TemporaryDirectory(prefix="hilswarm-bare-")
+    listen = f"unixsock-stream/{folder.name}/bus.sock" if unix else bus.loopback_endpoint(0)
+    session = bus.open_session(bus.listen_config([listen]))
+    endpoint = listen if unix else bus.bound_endpoints(session)[0]  # the port it bound
     lock = threading.Lock()
     period = 1.0 / rate_hz
     n_ticks = max(1, round(seconds * rate_hz))
@@ -273,6 +334,7 @@ def run_bare(
             raise RuntimeError(f"only {len(alive)} of {n} bare clients came up")
         startup = time.perf_counter() - started
         time.sleep(0.5)  # let every subscription reach the router
+        sampler = CpuSampler([process.pid for process in clients]).start()
         start = time.perf_counter()
         if lockstep:
             with lock:
@@ -296,6 +358,8 @@ def run_bare(
                     send(k, due)
             time.sleep(2 * period)
         wall = time.perf_counter() - start
+        sampler.stop()
+        client_cpu = sampler.total_s() / n / n_ticks
     finally:
         for process in clients:
             if process.stdin is not None:
@@ -307,14 +371,16 @@ def run_bare(
                 process.kill()
         entities.clear()
         session.close()
+        folder.cleanup()
     with lock:
         times = np.array(completion)
     if self_clocked:  # a tick is late when its last answer came after the next one was due
         times = times[times <= period]
         late = n_ticks - times.size
     return BareResult(
-        n, rate_hz, "lockstep" if lockstep else "realtime", n_ticks, late, times, wall, startup
-    )
+        n, rate_hz, "lockstep" if lockstep else "realtime", n_ticks, late, times, wall, startup,
+        client_cpu,
+    )  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -333,6 +399,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--window", type=int, default=0, help="lockstep: free running within W released ticks"
+    )
+    parser.add_argument(
+        "--unix", action="store_true", help="unix-socket transport instead of TCP on loopback"
     )
     parser.add_argument(
         "--short", action="store_true", help="CI-sized: each pattern, 8 clients at 50 Hz"
@@ -361,7 +430,7 @@ def main(argv: list[str] | None = None) -> int:
         ]  # fmt: skip
         n, rate = args.agents, args.rate
     for options in runs:
-        result = run_bare(n=n, rate_hz=rate, **options)
+        result = run_bare(n=n, rate_hz=rate, unix=args.unix, **options)
         print(describe(result, self_clocked=bool(options["self_clocked"]),
                        window=int(options["window"])))  # fmt: skip
     return 0

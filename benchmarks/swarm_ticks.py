@@ -5,7 +5,7 @@ waypoint, and simulated integrators running consensus. Realtime mode, N agents a
 rate: p50/p99 tick completion time (from the tick's scheduled time until the last y_k is in)
 and the fraction of late ticks. Lockstep mode: speed as a multiple of real time.
 
-    python benchmarks/swarm_ticks.py            # both fleets, N = 8..64 at 50/100/200 Hz
+    python benchmarks/swarm_ticks.py            # the targets' configurations (Frisbee fleet)
     python benchmarks/swarm_ticks.py --short    # Frisbee fleet, N = 8 at 50 Hz (< 60 s)
     python benchmarks/swarm_ticks.py --agents 32 --rates 100 --vehicle simulated
 
@@ -30,7 +30,10 @@ runs; its keys are stable (docs/running.md, "Benchmark JSON lines"):
 
 ``p99_ms`` is ``null`` when late ticks make it infinite; ``speed`` is ``null`` in realtime;
 ``late_fraction`` is ``null`` in lockstep; CPU figures are per tick (``agent_cpu_ms``: one
-agent's mean) and ``null`` for the bare bus.
+agent's mean; for the bare bus, one client's mean; its manager and recorder figures are
+``null``); ``load_1min`` is the 1-minute load average when the configuration began (the
+benchmark's own processes raise it; ``--settle-load 1`` waits for a quiet machine before
+each run).
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bare_bus import BareResult, run_bare
+from bare_bus import BareResult, CpuSampler, process_cpu_s, run_bare
 from hilswarm.agents import bus
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
@@ -102,7 +105,7 @@ class Result:
     recorder_cpu_s: float  # recorder process CPU per tick [s]
     agent_cpu_s: float  # one agent process's CPU per tick [s] (mean over the agents)
     startup_s: float  # agents started to every agent armed [s]
-    load_1min: float  # the machine's 1-minute load average when the run ended
+    load_1min: float  # the machine's 1-minute load average when the configuration began
 
     @property
     def total(self) -> int:
@@ -202,22 +205,13 @@ def result_json(result: Result) -> str:
 
 
 def bare_json(bare: BareResult, load_1min: float) -> str:
-    """:func:`json_line` of a bare-bus baseline."""
+    """:func:`json_line` of a bare-bus baseline (``agent_cpu_ms``: one client's CPU)."""
     p50, p99 = bare.percentiles_ms()
     return json_line(
         kind="bare", mode=bare.mode, agents=bare.n, rate_hz=bare.rate_hz, p50_ms=p50,
         p99_ms=p99, late_fraction=bare.late_fraction, speed=bare.speed,
-        startup_s=bare.startup_s, load_1min=load_1min,
+        startup_s=bare.startup_s, load_1min=load_1min, agent_cpu_ms=bare.client_cpu_s * 1e3,
     )  # fmt: skip
-
-
-def _process_cpu_s(pid: int) -> float:
-    """User + system CPU of process ``pid`` so far [s] (0 when it is gone)."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def run_once(
@@ -259,6 +253,7 @@ def run_once(
             security=security.router() if security else None,
         )
         recorder_cpu = 0.0
+        load = os.getloadavg()[0]
         try:
             manager.open()
             endpoints = manager.endpoints
@@ -275,17 +270,17 @@ def run_once(
                 startup = time.perf_counter() - started
                 if isinstance(sink, RecorderProcess):
                     sink.wait_ready()
-                    recorder_cpu = -_process_cpu_s(sink.process.pid)
-                pids = [process.pid for process in launcher.processes.values()]
-                agents_cpu = -sum(_process_cpu_s(pid) for pid in pids)
+                    recorder_cpu = -(process_cpu_s(sink.process.pid) or 0.0)
+                agents = CpuSampler([process.pid for process in launcher.processes.values()])
+                agents.start()
                 cpu0 = resource.getrusage(resource.RUSAGE_SELF)
                 summary = manager.run()
                 cpu1 = resource.getrusage(resource.RUSAGE_SELF)
-                agents_cpu += sum(_process_cpu_s(pid) for pid in pids)
+                agents.stop()
         finally:
             manager.close()
             if isinstance(sink, RecorderProcess):
-                recorder_cpu += _process_cpu_s(sink.process.pid)
+                recorder_cpu += process_cpu_s(sink.process.pid) or 0.0
                 sink.close()
             elif sink is not None:
                 sink.close()
@@ -293,20 +288,34 @@ def run_once(
     ticks = max(1, summary.ticks + summary.late_ticks)
     return Result(
         vehicle, mode, n, rate_hz, summary, cpu / ticks, max(0.0, recorder_cpu) / ticks,
-        max(0.0, agents_cpu) / ticks / n, startup, os.getloadavg()[0],
+        agents.total_s() / ticks / n, startup, load,
     )  # fmt: skip
 
 
-def baseline_row(bare: BareResult) -> str:
-    """A table row for a bare-bus baseline run (same columns as :meth:`Result.row`)."""
+def baseline_row(bare: BareResult, load_1min: float) -> str:
+    """A table row for a bare-bus baseline run (same columns as :meth:`Result.row`; ``agt``:
+    one client's CPU per tick)."""
     p50, p99 = bare.percentiles_ms()
     late = "-" if bare.mode == "lockstep" else f"{100 * bare.late_fraction:.2f}"
     speed = f"{bare.speed:.1f}x" if bare.mode == "lockstep" else "-"
     return (
         f"{'bare bus':9} {bare.mode:9} {bare.n:>3} {bare.rate_hz:>5g} {bare.ticks:>6} "
-        f"{p50:>7.2f} {p99:>7.2f} {late:>6} {'-':>8} {'-':>8} {'-':>8} {speed:>7} "
-        f"{bare.startup_s:>6.2f} {os.getloadavg()[0]:>5.2f}"
+        f"{p50:>7.2f} {p99:>7.2f} {late:>6} {'-':>8} {bare.client_cpu_s * 1e3:>8.3f} "
+        f"{'-':>8} {speed:>7} {bare.startup_s:>6.2f} {load_1min:>5.2f}"
     )
+
+
+def settle(max_load: float | None, timeout_s: float = 240.0) -> None:
+    """Wait (bounded) until the 1-minute load average is below ``max_load`` (``None``: no wait).
+
+    The benchmark's own processes raise the load; waiting before each configuration keeps one
+    configuration's load from weighing on the next.
+    """
+    if max_load is None:
+        return
+    deadline = time.monotonic() + timeout_s
+    while os.getloadavg()[0] >= max_load and time.monotonic() < deadline:
+        time.sleep(5.0)
 
 
 #: Realtime configurations of the issue's targets: (agents, rate [Hz]).
@@ -415,11 +424,15 @@ def main(argv: list[str] | None = None) -> int:
         help="recorder process (as hilswarm run), recorder inside the manager, or none",
     )  # fmt: skip
     parser.add_argument(
-        "--zenoh-runtime", choices=("lean", "default"), default="default",
+        "--zenoh-runtime", choices=("lean", "default"), default="lean",
         help="Zenoh runtime pools of every process (baseline and runtime alike): hilswarm's "
-        "lean setting (bus.LEAN_RUNTIME) or Zenoh's defaults",
+        "own setting (bus.LEAN_RUNTIME, as hilswarm run) or Zenoh's defaults",
     )  # fmt: skip
     parser.add_argument("--no-lockstep", action="store_true")
+    parser.add_argument(
+        "--settle-load", type=float, metavar="LOAD",
+        help="before each run, wait (up to 4 min) until the 1-minute load average is below LOAD",
+    )  # fmt: skip
     parser.add_argument(
         "--no-baseline", action="store_true", help="skip the bare-bus baseline runs"
     )
@@ -440,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
         "p50/p99: tick completion (scheduled time to last y_k in; a late tick counts as inf);\n"
         "mgr/agt/rec ms: CPU per tick of the orchestrator process (Zenoh router included), of "
         "one agent (mean) and of the recorder process;\nup s: agents started to all armed; "
-        "load: 1-minute load average at the end of the run",
+        "load: 1-minute load average when the run began",
         flush=True,
     )
     print(HEADER, flush=True)
@@ -452,10 +465,13 @@ def main(argv: list[str] | None = None) -> int:
             configs.append(("lockstep", 8, 100.0, lockstep_seconds))
         for mode, n, rate, seconds in configs:
             if not args.no_baseline and (mode, n, rate) not in baselines:
+                settle(args.settle_load)
+                load = os.getloadavg()[0]
                 bare = run_bare(n=n, rate_hz=rate, seconds=seconds, lockstep=mode == "lockstep")
                 baselines[(mode, n, rate)] = bare
-                print(baseline_row(bare), flush=True)
-                print(bare_json(bare, os.getloadavg()[0]), flush=True)
+                print(baseline_row(bare, load), flush=True)
+                print(bare_json(bare, load), flush=True)
+            settle(args.settle_load)
             result = run_once(
                 n=n, rate_hz=rate, mode=mode, seconds=seconds, record=args.record,
                 vehicle=vehicle,

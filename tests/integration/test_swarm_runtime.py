@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 from hilswarm.agents import bus
 from hilswarm.orchestrator.experiment import load_experiment
 from mcap.reader import make_reader
@@ -471,8 +472,8 @@ def test_malformed_and_forged_input_is_dropped_counted_and_never_fatal(
         keys.control: [b"\xff\xfe", b"[1, 2]", b'{"command": "fly"}', b"[" * 100_000],
     }
     for key, payloads in garbage.items():
-        for payload in payloads:
-            spy.session.put(key, payload)
+        for payload in payloads:  # blocking: a dropped put would not be counted (100 kB ones)
+            spy.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
     replies = list(spy.session.get(keys.set("b"), payload=b"\x00not json", timeout=10.0))
     assert replies and replies[0].err is not None
     # never fatal, but not a clean run: the summary lists the counts, exit status 3
