@@ -392,9 +392,16 @@ def bench_capacity(endpoint: str, rate_hz: float, ticks: int) -> None:
 
 
 def bench_broadcast(
-    endpoint: str, rate_hz: float, ticks: int, reply_every: int, *, step: int, answer: str = "wait"
+    endpoint: str,
+    rate_hz: float,
+    ticks: int,
+    reply_every: int,
+    *,
+    step: int,
+    answer: str = "wait",
+    max_n: int = 255,
 ) -> None:
-    """Largest N with no late ticks by packed broadcast vs its computed bounds."""
+    """Largest N (at most ``max_n``) with no late ticks by packed broadcast vs its bounds."""
     n_bound, binding = bcast_bound(rate_hz, reply_every)
     n_latency = bcast_latency_bound(rate_hz, reply_every)
 
@@ -407,7 +414,7 @@ def bench_broadcast(
             n_latency += 1
     best = best_1pc = best_2 = 0
     n = 1
-    while n <= n_bound + 1:
+    while n <= min(n_bound + 1, max_n):
         run = ticks_on_time(
             endpoint, n, rate_hz, ticks, mode="broadcast", reply_every=reply_every, answer=answer
         )
@@ -468,7 +475,13 @@ def main() -> None:
                 step = 8 if args.short else (4 if rate < 30 else 2)
                 for answer in ("wait",) if args.short else ("wait", "at_once"):
                     bench_broadcast(
-                        endpoint, rate, ticks, args.reply_every, step=step, answer=answer
+                        endpoint,
+                        rate,
+                        ticks,
+                        args.reply_every,
+                        step=step,
+                        answer=answer,
+                        max_n=16 if args.short else 255,
                     )
     finally:
         router.close()

@@ -119,6 +119,9 @@ _READ_CHUNK = 4096
 _PosixSerial: type | None = getattr(getattr(serial, "serialposix", None), "Serial", None)
 
 
+_STALE = int(BoardStatus.STALE)
+
+
 class SerialPort(Protocol):
     """The part of :class:`serial.SerialBase` the board uses."""
 
@@ -166,7 +169,8 @@ class LinkStats:
 
     requests: int = 0
     retries: int = 0
-    stale_replies: int = 0
+    stale_replies: int = 0  # replies with an old seq, discarded
+    stale_samples: int = 0  # TICK replies marked STALE (a gateway's repeat of older samples)
     malformed_replies: int = 0
     reconnections: int = 0
     bytes_sent: int = 0
@@ -772,6 +776,8 @@ class SerialBoard(Board):
             )
         status = self._status(reply.status)
         self._note_status(status)
+        if reply.status & _STALE:
+            self.stats.stale_samples += 1
         return TickReply(
             reply.seq,
             status,

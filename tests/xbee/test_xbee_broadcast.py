@@ -163,6 +163,7 @@ def test_one_broadcast_per_tick_each_robot_its_own_outputs_replies_decimated(
             )
             assert reply.samples == last.samples and reply.board_time_s == last.board_time_s
         assert gateway.stats.robots[name].stale_replies == len(stale)
+        assert boards[name].stats.stale_samples == len(stale)  # counted on the agent's side
     assert abs(replies["r3"][-1].samples[14] - 614) <= 3  # 3.0 V: the robot's own sample
 
 
