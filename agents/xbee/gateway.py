@@ -379,6 +379,8 @@ class Gateway:
     def _act(self, actions: list[Action]) -> None:
         """Carry out the packer's actions (writer or reader thread)."""
         for action in actions:
+            if isinstance(action, ToAgent) and action.stale and not self.connected.is_set():
+                continue  # coordinator away: no answers from old samples; the boards time out
             if isinstance(action, ToAgent):
                 robot = self.stats.robots[action.name]
                 robot.stale_replies += action.stale

@@ -14,13 +14,15 @@ configuration it saw accepted, turns each TICK into the robot's compact section
   SET_ID.
 * **Decimated replies.** Robot i answers on round r when ``(r + i) % reply_every == 0``
   (round-robin, so the replies of a tick are spread), and always when it has no samples yet,
-  when it missed its last reply, or when its agent repeats a TICK (a retry). Its BCAST_REPLY
+  when it missed its last reply. Its BCAST_REPLY
   becomes the agent's TICK_REPLY (the agent's seq, the agent's sampled pins).
 * **Stale replies.** On the other rounds the packer answers the agent itself at once: the
   robot's last samples and board time, status :attr:`~.board.BoardStatus.STALE` (never passed
   off as fresh; the one-shot events are not repeated). It does so only while the robot's last
   requested reply arrived: a robot that misses one is asked again, and its agent gets no answer
-  until it does, so its board times out, retries and goes safe as over unicast. A robot the
+  until it does, so its board times out, retries and goes safe as over unicast. A retry (an
+  agent repeating a TICK's seq) goes by unicast: the board answers it itself, with an ERROR if
+  it rebooted (NOT_CONFIGURED), so the agent's board recovers as over USB. A robot the
   broadcasts leave out (its agent stopped sending) trips its watchdog by itself.
 
 * **Answering at once** (``answer = "at_once"``). Waiting for a robot's own reply costs its
@@ -111,7 +113,6 @@ class _Pending:
     agent_seq: int
     read_pins: tuple[int, ...]
     data: bytes
-    retry: bool
 
 
 @dataclass
@@ -230,7 +231,7 @@ class BroadcastPacker:
             return None  # the board answers it with the right ERROR over unicast
         retry = robot.last_agent_seq == payload[1]
         robot.last_agent_seq = payload[1]
-        return _Pending(payload[1], reads, data, retry)
+        return None if retry else _Pending(payload[1], reads, data)
 
     def _config(self, robot: _Robot, payload: bytes) -> bytes:
         """A CONFIG on its way: note its modes; add the broadcast id for a protocol-2 robot."""
@@ -274,14 +275,14 @@ class BroadcastPacker:
         for name, pending in self._round.items():
             robot = self.robots[name]
             turn = (self.rounds + robot.index) % robot.reply_every == 0
-            if self.at_once and robot.samples is not None and not pending.retry:
+            if self.at_once and robot.samples is not None:
                 patience = 2 * robot.reply_every + 2
                 if self.rounds - robot.fresh_round <= patience:  # its replies keep coming
                     sections.append((name, BcastSection(robot.bcast_id, turn, pending.data)))
                     answers.append(self._stale(robot, pending))
                     continue
             missed = robot.owed is not None  # asked last time, never answered
-            reply = turn or missed or pending.retry or robot.samples is None
+            reply = turn or missed or robot.samples is None
             sections.append((name, BcastSection(robot.bcast_id, reply, pending.data)))
             if reply:
                 robot.owed = (-1, pending.agent_seq, pending.read_pins)  # seq set below

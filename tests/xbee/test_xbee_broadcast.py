@@ -242,3 +242,48 @@ def test_answer_at_once_every_sample_stale_refreshed_by_the_decimated_replies(
                 break
         else:
             raise AssertionError("r3's agent was answered at once forever")
+
+
+@pytest.mark.parametrize("answer", ["wait", "at_once"])
+def test_broadcast_coordinator_unplugged_every_agent_times_out_then_back(
+    client_session: Callable[[], zenoh.Session], answer: str
+) -> None:
+    with ExitStack() as stack:
+        sims = {name: SimBoard(dt=0.05) for name in ADDRS}
+        coordinator, gateway, boards, _ = _swarm(
+            stack, client_session, sims, dict.fromkeys(ADDRS, 3), answer=answer
+        )
+        names = sorted(boards)
+        for k in range(4):
+            assert all(isinstance(r, TickReply) for r in _tick(boards, _writes(k, names)).values())
+        for board in boards.values():
+            board.timeout_s, board.retries = 0.1, 0
+        coordinator.unplug()
+        _wait(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
+        results = _tick(boards, _writes(4, names))  # no answers from old samples meanwhile
+        assert all(isinstance(r, BoardTimeoutError) for r in results.values()), results
+        coordinator.replug()
+        _wait(gateway.connected.is_set, 5.0, "the gateway to reconnect")
+        for board in boards.values():
+            board.timeout_s, board.retries = 0.3, 3
+        for k in range(5, 8):
+            assert all(isinstance(r, TickReply) for r in _tick(boards, _writes(k, names)).values())
+
+
+def test_a_rebooted_robot_recovers_through_its_agents_unicast_retry(swarm: Swarm) -> None:
+    coordinator, _gateway, boards, sims = swarm
+    names = sorted(boards)
+    for k in range(3):
+        assert all(isinstance(r, TickReply) for r in _tick(boards, _writes(k, names)).values())
+    events: list[str] = []
+    boards["r2"].add_link_listener(lambda kind, _detail: events.append(kind))
+    coordinator.remotes[ADDRS["r2"]].robot.server.reboot()  # type: ignore[attr-defined]
+    for k in range(3, 12):  # its BCAST sections are ignored until it is configured again
+        results = _tick(boards, _writes(k, names))
+        assert all(isinstance(r, TickReply) for r in results.values()), (k, results)
+        if "board_reset" in events:
+            break
+    assert "board_reset" in events  # the retry went by unicast: NOT_CONFIGURED, re-configured
+    writes = _writes(20, names)
+    _tick(boards, writes)
+    _wait(lambda: sims["r2"].outputs[5] == writes["r2"][5], 5.0, "r2 driven by broadcast again")
