@@ -281,7 +281,8 @@ class BroadcastPacker:
                     sections.append((name, BcastSection(robot.bcast_id, turn, pending.data)))
                     answers.append(self._stale(robot, pending))
                     continue
-            missed = robot.owed is not None  # asked last time, never answered
+            # asked last time and never answered; or (at once) no reply for too long
+            missed = robot.owed is not None or (self.at_once and robot.samples is not None)
             reply = turn or missed or robot.samples is None
             sections.append((name, BcastSection(robot.bcast_id, reply, pending.data)))
             if reply:
