@@ -46,17 +46,18 @@ most one period of telemetry.
 Status messages (JSON on ``agent/<name>/status``, recorded on ``/<agent>/status``) carry
 ``agent``, ``state``, ``k``, ``t``, ``detail``, ``kind`` and, once any is non-zero, the input
 counters: ``malformed`` (messages that could not be decoded, by key: ``tick``, ``y``,
-``control``, ``set``), ``dropped`` (well-formed messages rejected by the tick engine, by
-reason: ``tick_ahead``, ``tick_past``, ``tick_time``, ``tick_mode``, ``tick_missing``,
-``y_ahead``, ``y_duplicate``, ``y_size``, and ``stale`` realtime ticks skipped), ``skipped``
-(ticks this agent missed in total) and ``link_faults`` (board link faults ridden out). A
-status of kind ``inputs`` is published when these counters change (at most once per
-:data:`COUNTERS_PERIOD_S`).
+``control``, ``set``, ``mocap``: body poses of a mocap pose source), ``dropped`` (well-formed
+messages rejected by the tick engine, by reason: ``tick_ahead``, ``tick_past``, ``tick_time``,
+``tick_mode``, ``tick_missing``, ``y_ahead``, ``y_duplicate``, ``y_size``, and ``stale``
+realtime ticks skipped), ``skipped`` (ticks this agent missed in total) and ``link_faults``
+(board link faults ridden out). A status of kind ``inputs`` is published when these counters
+change (at most once per :data:`COUNTERS_PERIOD_S`).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import math
 import queue
@@ -123,7 +124,7 @@ RECONNECT_PAUSE_S = 0.1
 #: Shortest time between two status messages that only report changed counters [s].
 COUNTERS_PERIOD_S = 1.0
 #: The keys whose malformed messages are counted (keys of :attr:`Agent.malformed`).
-INPUT_KEYS = ("tick", "y", "control", "set")
+INPUT_KEYS = ("tick", "y", "control", "set", "mocap")
 #: Board errors that mean the link failed (as opposed to a request the board refused).
 LINK_FAULTS = (BoardTimeoutError, BoardConnectionError)
 
@@ -510,6 +511,8 @@ class Agent:
         source = getattr(self.hardware.vehicle, "pose_source", None) if self.hardware else None
         attach = getattr(source, "attach_bus", None)
         if attach is not None:
+            if hasattr(source, "on_malformed"):  # undecodable poses: malformed["mocap"]
+                source.on_malformed = functools.partial(self._count_malformed, "mocap")
             self._entities.extend(attach(session, self.keys))
             source.wait_first()
 

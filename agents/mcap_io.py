@@ -2,24 +2,31 @@
 
 Writing: :class:`McapJsonWriter` registers one channel per topic and writes
 
-* vector topics (:meth:`McapJsonWriter.write`): every message is
-  ``{"k": <tick>, "t": <experiment time [s]>, "values": [...], <field>: <value>, ...}``;
-  the topic contract is ``/<agent>/y``, ``/<agent>/u``, ``/<agent>/x_hat``,
+* vector topics (:meth:`McapJsonWriter.write`, :meth:`~McapJsonWriter.write_floats`): every
+  message is ``{"k": <tick>, "t": <experiment time [s]>, "values": [...], <field>: <value>,
+  ...}``; the topic contract is ``/<agent>/y``, ``/<agent>/u``, ``/<agent>/x_hat``,
   ``/<agent>/telemetry/<channel>``, ``/orchestrator/ticks``;
 * free-form JSON topics (:meth:`McapJsonWriter.write_json`) such as ``/experiment`` and
-  ``/<agent>/status``.
+  ``/<agent>/status``;
+* metadata records (:meth:`McapJsonWriter.add_metadata`), such as the run's ``hilswarm.run``.
 
-Message encoding is ``json`` and schema encoding ``jsonschema`` (what Foxglove reads). Chunks are
-small (32 KiB by default, zstd level 1 by default) and written straight to the file descriptor,
-so a crashed process loses at most the chunk in progress. JSON has no NaN/Infinity: non-finite
-numbers become ``null``. The MCAP records are written by :class:`ChunkedMcapWriter`, which
-writes what the ``mcap`` library's ``Writer`` writes at a fraction of its cost per message;
-:meth:`McapJsonWriter.write_floats_many` is the hot path of a run recording.
+Message encoding is ``json`` and schema encoding ``jsonschema`` (what Foxglove reads). The MCAP
+records themselves (chunks, message and chunk indexes, CRCs, statistics, summary) are written by
+foxglove-sdk's MCAP writer, the Rust writer Foxglove maintains (:func:`open_writer`); this
+module adds the topic contract and fast JSON text for vector messages, and
+:meth:`McapJsonWriter.write_floats_many` is the hot path of a run recording. Chunks are zstd
+(level 1, :data:`ZSTD_LEVEL`) by default, ``lz4`` or uncompressed on request, and small
+(:data:`DEFAULT_CHUNK_SIZE`, or ``chunk_size=None``: a chunk ends only at
+:meth:`McapJsonWriter.flush`, where the recorder process acknowledges). A chunk goes to the file
+when it is full or flushed, so a crashed process loses about the chunk in progress. JSON has no
+NaN/Infinity: non-finite numbers become ``null``. A :class:`Mirror` (the live view) can be
+handed every channel and message too.
 
-Reading: :func:`iter_messages` yields ``(topic, log_time_ns, message)`` in file order and stops
-cleanly at the first incomplete record of a truncated file; :func:`read_schemas` returns the
-JSON Schema of every topic; :func:`recover` rewrites the readable part of a damaged file as a
-valid MCAP file.
+Reading, with the ``mcap`` package's non-seeking ``StreamReader``: :func:`iter_messages` yields
+``(topic, log_time_ns, message)`` in file order and stops cleanly at the first incomplete
+record of a truncated file; :func:`read_schemas` returns the JSON Schema of every topic and
+:func:`read_metadata` the metadata records; :func:`recover` rewrites the readable part of a
+damaged file as a valid MCAP file.
 """
 
 from __future__ import annotations

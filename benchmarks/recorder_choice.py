@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -30,12 +29,6 @@ from hilswarm.agents import bus
 
 #: A Frisbee bot's y (k, t, x, y, psi), as the agents publish it.
 PAYLOAD = bus.encode_vector(0, 0.0, [0.0, 0.0, 0.0])
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def publisher(endpoint: str, n: int, rate: float, seconds: float) -> None:
@@ -77,8 +70,8 @@ def cpu_s() -> float:
 
 def manager_figure(n: int, rate: float, seconds: float, *, with_recorder: bool) -> float:
     """CPU [µs] of the manager's process per message, with or without a subscribing recorder."""
-    endpoint = bus.loopback_endpoint(free_port())
-    session = bus.open_session(bus.listen_config([endpoint]))
+    session = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
+    endpoint = bus.bound_endpoints(session)[0]  # the free port the router bound
     received = [0]
 
     def on_y(_sample: zenoh.Sample) -> None:

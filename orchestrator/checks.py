@@ -14,7 +14,9 @@ in ``[agents.*]``), then, when that succeeds, checks every agent against the cod
 * the controller accepts the parameters (``validate_params``), a follower's ``leader`` is a
   direct neighbour (``A[i][leader] = 1``), and one dry controller step with zero data fits the
   vehicle's input and output sizes and the neighbours' output sizes;
-* the board watchdog is longer than a control period.
+* the board watchdog is longer than a control period;
+* with ``[mocap] system = "sim"`` every agent's board is simulated (the simulated cameras see
+  only simulated plants); a real mocap system sees every agent's body now.
 
 Errors are :class:`~hilswarm.orchestrator.problems.Problem` s (the file cannot run as written);
 warnings are Problems too but do not fail the check (e.g. a graph that is not connected, a
@@ -25,7 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Container, Mapping
+from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -133,6 +135,7 @@ def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
     built = {name: _AgentCheck(parts, spec, report, shared) for name, spec in parts.agents.items()}
     for check in built.values():
         check.build()
+    _check_sim_mocap_links(parts, built.values(), report)
     output_sizes = {name: check.n_outputs for name, check in built.items()}
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
@@ -191,6 +194,33 @@ def _check_mocap_bodies(parts: ExperimentParts, report: CheckReport) -> None:
                     f"it sees: {', '.join(visible) or 'no bodies'}",
                 )
             )
+
+
+def _check_sim_mocap_links(
+    parts: ExperimentParts, checks: Iterable[_AgentCheck], report: CheckReport
+) -> None:
+    """``system = "sim"`` simulates cameras fed by the simulated plants' true poses: an agent on
+    a real board has no such plant, so its body would never be seen and it could not start."""
+    mocap = parts.mocap
+    if mocap is None or mocap.system != "sim":
+        return
+    real = [(check.spec.name, check.real_link) for check in checks if check.real_link]
+    if not real:
+        return
+    agents = ", ".join(f"{name!r} (link {link!r})" for name, link in real)
+    one = len(real) == 1
+    report.problems.append(
+        Problem(
+            parts.path,
+            "mocap.system",
+            f'"sim" simulates cameras that see only simulated robots (links sim://, simavr://, '
+            f"xbee://...?sim=), but {'agent' if one else 'agents'} {agents} "
+            f"{'has a real board: its body' if one else 'have real boards: their bodies'} "
+            "would never be seen and the run could not start; set [mocap] system to your real "
+            'motion capture system ("vicon", "optitrack", "qualisys" or "vrpn") and its host, '
+            f"or give {'that agent a simulated link' if one else 'those agents simulated links'}",
+        )
+    )
 
 
 def _check_graph(path: Path, facts: GraphFacts, report: CheckReport) -> None:
@@ -269,6 +299,9 @@ class _AgentCheck:
         self.vehicle: Any = None
         self.n_inputs: int | None = None
         self.n_outputs: int | None = None
+        #: The agent's link when it is a real board that needs a pose from ``[mocap]``
+        #: (a valid URL, not simulated), else ``None``.
+        self.real_link: str | None = None
 
     def problem(self, key: str, message: str) -> None:
         self.report.problems.append(Problem(self.parts.path, f"{self.key}.{key}", message))
@@ -378,6 +411,8 @@ class _AgentCheck:
                 "link",
                 f"vehicle {spec.vehicle!r} needs no board; link {spec.link!r} is not used",
             )
+        if not is_simulated(spec.link) and getattr(vehicle_cls, "needs_board", True):
+            self.real_link = spec.link.strip()  # its pose can only come from a real system
         needs_pose = vehicle_cls is not None and getattr(vehicle_cls, "needs_pose", False)
         if needs_pose and not is_simulated(spec.link) and self.parts.mocap is None:
             self.problem(

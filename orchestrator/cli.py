@@ -4,7 +4,9 @@ Each subcommand lives in its own module under :mod:`hilswarm.orchestrator.comman
 ``HELP: str``, ``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported only for
 the command being run, so ``hilswarm check`` starts fast and never imports Zenoh.
 
-Exit status: 0 success, 1 the run failed, 2 bad input (file, key or value), 130 interrupted.
+Exit status: 0 success, 1 the run failed, 2 bad input (file, key or value), 130 interrupted,
+141 (128 + SIGPIPE, as a shell tool killed by it) the reader of the output went away
+(``hilswarm graph x.toml --json | head -1``): the rest of the output is dropped, quietly.
 """
 
 from __future__ import annotations
@@ -12,11 +14,15 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from types import ModuleType
 
 from hilswarm.agents.errors import HilswarmError
+
+#: Exit status when the reader of the output closed its end of the pipe (128 + SIGPIPE).
+BROKEN_PIPE = 141
 
 #: command -> (module, one-line help). Order is the order shown by --help.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -79,13 +85,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     try:
-        return int(_command_module(args.command).run(args) or 0)
+        code = int(_command_module(args.command).run(args) or 0)
+        sys.stdout.flush()  # here, not at exit: a closed pipe is handled below
+    except BrokenPipeError:
+        _drop_output()
+        return BROKEN_PIPE
     except KeyboardInterrupt:
         print("hilswarm: interrupted", file=sys.stderr)
         return 130
     except HilswarmError as exc:
         print(f"hilswarm {args.command}: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ValueError | TypeError | LookupError) else 1
+    return code
+
+
+def _drop_output() -> None:
+    """The reader of standard output went away: send what is still buffered, and anything
+    written later, to ``/dev/null`` (Python's recipe), so the flush at exit raises no second
+    ``BrokenPipeError``."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    finally:
+        os.close(devnull)
 
 
 if __name__ == "__main__":

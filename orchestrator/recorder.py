@@ -69,7 +69,9 @@ STATUS_SCHEMA = _object_schema(
         "detail": {"type": "string", "description": "reason or remark"},
         "malformed": {
             "type": "object",
-            "description": "messages the agent could not decode, by key (tick, y, control, set)",
+            "description": (
+                "messages the agent could not decode, by key (tick, y, control, set, mocap)"
+            ),
         },
         "dropped": {
             "type": "object",

@@ -8,8 +8,11 @@ no ``y_{k-1}`` in the file), at the time the agent used (``t`` of the recorded `
 replayed ``u_k`` and ``x_hat_k`` are compared with the recorded ones.
 
 Replaying a lockstep run unchanged is bit-exact: the agent computed exactly this, and the
-recording keeps every float exactly (shortest round-trip text). A realtime run may differ
-where a neighbour's output arrived late (the agent then used an older one). Parameter changes
+recording keeps every float exactly (shortest round-trip text). A realtime run is bit-exact
+only up to an agent's first tick ``k`` whose inputs the file does not pin down: the agent
+skipped tick ``k-1`` (it then used older outputs; its replay stops there, having no
+``y_{k-1}``), or a neighbour was late for tick ``k-1`` or lost (the agent used ``None`` for
+it unless the late output reached it in time; docs/recording.md, Replay). Parameter changes
 made during the run (``hilswarm set``) are not replayed.
 """
 

@@ -3,8 +3,10 @@
 :class:`MocapPoseSource` is the vehicle's ``pose_source`` when the experiment has a
 ``[mocap]`` section. It subscribes to exactly one body key (``hilswarm/<exp>/mocap/<body>``)
 and to the mocap process's status. The subscription callbacks only decode and store the newest
-message (no blocking, no work); :meth:`MocapPoseSource.pose`, called once per tick when the
-vehicle senses, decides:
+message (no blocking, no work); a pose message that cannot be decoded is dropped and counted
+(:attr:`MocapPoseSource.malformed`, and ``on_malformed``: the agent's ``malformed["mocap"]``
+status counter). :meth:`MocapPoseSource.pose`, called once per tick when the vehicle senses,
+decides:
 
 * the newest filtered pose (world frame, :mod:`hilswarm.agents.mocap.frames`) while the body
   is seen or occluded for at most ``hold_frames`` frames (the pose is then held);
@@ -85,6 +87,11 @@ class MocapPoseSource:
             or ``None``.
         on_lost: called once with the reason when tracking is lost (``vehicle.enter_safe_mode``).
         clock: monotonic clock [s] (CLOCK_MONOTONIC: latencies are compared across processes).
+
+    Attributes:
+        on_malformed: called (on the bus thread, so it must not block) for each pose message,
+            of the body or of a neighbour's, that cannot be decoded; the agent sets it to
+            count ``malformed["mocap"]``. Set it before :meth:`attach_bus`.
     """
 
     #: Poses come in the world frame (z up).
@@ -118,6 +125,9 @@ class MocapPoseSource:
         self._channel: Any = None
         self._row = np.full(len(TELEMETRY_FIELDS), np.nan)
         self.lost_reason: str | None = None
+        self.on_malformed: Callable[[], None] | None = None
+        self._malformed = 0
+        self._malformed_lock = threading.Lock()  # two bus threads may count at once
         #: Latency [s] frame time -> sense of every pose used (benchmarks read it).
         self.latencies: list[float] = []
         self.keep_latencies = False
@@ -154,11 +164,27 @@ class MocapPoseSource:
             self._publish_truth()
         return entities
 
+    @property
+    def malformed(self) -> int:
+        """Pose messages (own body and neighbours') dropped because they could not be decoded."""
+        return self._malformed
+
+    def _count_malformed(self, body: str, exc: BaseException) -> None:
+        """Count a pose message that cannot be decoded (bus thread: no blocking work; only the
+        first is logged, the rest are counted in the agent's status)."""
+        with self._malformed_lock:
+            self._malformed += 1
+            first = self._malformed == 1
+        if first:
+            logger.warning("mocap body %s: %s (dropped; further ones are only counted)", body, exc)
+        if self.on_malformed is not None:
+            self.on_malformed()
+
     def _on_pose(self, sample: zenoh.Sample) -> None:
         try:
             decoded = message.decode(sample.payload.to_bytes())
         except bus.BusMessageError as exc:
-            logger.warning("mocap body %s: %s", self.body, exc)
+            self._count_malformed(self.body, exc)
             return
         self._latest = (decoded, self._clock())
         if not decoded.occluded:
@@ -166,12 +192,11 @@ class MocapPoseSource:
 
     def _on_neighbour(self, agent: str, sample: zenoh.Sample) -> None:
         try:
-            self._neighbour_latest[agent] = (
-                message.decode(sample.payload.to_bytes()),
-                self._clock(),
-            )
+            decoded = message.decode(sample.payload.to_bytes())
         except bus.BusMessageError as exc:
-            logger.warning("mocap body of neighbour %s: %s", agent, exc)
+            self._count_malformed(self.neighbours.get(agent, agent), exc)
+            return
+        self._neighbour_latest[agent] = (decoded, self._clock())
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         try:

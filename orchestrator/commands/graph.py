@@ -38,6 +38,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     facts = graph_facts(experiment.agent_names, experiment.adjacency)
     if args.json:
+        # stable keys, documented in docs/experiments.md (Graph facts): add, never rename
         data = {
             "names": list(facts.names),
             "adjacency": experiment.adjacency.tolist(),

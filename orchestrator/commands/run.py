@@ -283,6 +283,8 @@ def _run(
         display.log(f"recording failed: {reason}")
         if policy == "stop" and manager is not None:
             manager.request_stop(f"recording failed ({reason}); on_recording_failure = stop")
+        else:
+            display.log("on_recording_failure = continue: the run goes on, not recorded")
 
     out.parent.mkdir(parents=True, exist_ok=True)
     recorder = RecorderProcess(

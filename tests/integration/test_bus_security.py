@@ -25,8 +25,10 @@ import pytest
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import Credentials
-from hilswarm.orchestrator.bus_access import OPERATOR, VIEWER, agent_user
+from hilswarm.agents.mocap import message as mocap_message
+from hilswarm.orchestrator.bus_access import GATEWAY, MOCAP, OPERATOR, VIEWER, agent_user
 from swarm_harness import (
+    REPO,
     RunProcess,
     agent_name_of,
     connect_spy,
@@ -133,39 +135,117 @@ class Listener:
             return list(self.keys)
 
 
-def attack(session: zenoh.Session, keys: bus.BusKeys, *, operator: bool) -> list[object]:
-    """Every forgery of the issue, from one session (each should be dropped by the router).
+#: Bytes no board link ever carries (a COBS frame whose CRC is wrong): forged board traffic.
+FORGED_LINK = b"\x00hilswarm-forged-link-bytes\x00"
 
-    The operator may ask the manager to stop (``manager/request``) and set parameters: those
-    two are not sent as the operator.
 
-    Returns the declared entities (tokens, publishers), which must stay alive.
+def forgeries(
+    keys: bus.BusKeys, *, user: str, target: str = "a", body: str = "a"
+) -> list[tuple[str, bytes]]:
+    """Every forged put of the issue, as ``(key, payload)``, that ``user`` may not make.
+
+    ``target`` is the attacked agent and ``body`` its mocap rigid body. Besides the swarm's
+    own keys (tick, control, y, status, telemetry) they cover the keys that reach hardware or
+    the record: the board link over the XBee gateway (``link/tx``, ``link/rx``, the simulated
+    robot's UART ``link/robot/{in,out}``), mocap poses and status, the simulated plant's true
+    pose, the gateway's fault commands and status, the manager's status, ``u`` and ``x_hat``.
+    What the principal's role allows is left out (the operator may ask the manager to stop and
+    send ``gateway/sim``; the mocap process puts poses; the gateway relays link bytes).
+    """
+    vector = bus.encode_vector(20, 0.4, [FORGED])
+    pose = mocap_message.encode_row(10**6, 0.0, 0.0, 0.0, occluded=0, values=[FORGED] * 20)
+    sent = [
+        (keys.tick, bus.encode_tick(bus.TickMessage(10**6, 2e4, (), realtime=False))),
+        (keys.tick, b"\x01"),
+        *((keys.control, bus.encode_control(c, reason="forged")) for c in bus.ControlCommand),
+        (keys.manager_status, bus.encode_json({"state": "estop", "detail": "forged"})),
+        (keys.y(target), vector),
+        (keys.y(target), b"\x00\x01\x02"),
+        (keys.u(target), vector),
+        (keys.x_hat(target), vector),
+        (
+            keys.status(target),
+            bus.encode_json({"agent": target, "state": "safe", "detail": "forged"}),
+        ),
+        (keys.agent(target, "telemetry/battery"), vector),
+        (keys.mocap_truth(body), mocap_message.encode_truth(np.full(6, FORGED), 0.4)),
+    ]
+    if user != OPERATOR:
+        sent += [
+            (keys.manager_request, bus.encode_control(bus.ControlCommand.STOP, reason="forged")),
+            (keys.gateway("sim"), json.dumps({"unplug": True, "forged": FORGED}).encode()),
+        ]
+    if user != MOCAP:
+        sent += [
+            (keys.mocap(body), pose),
+            (keys.mocap_status, bus.encode_json({"state": "lost", "detail": "forged"})),
+        ]
+    if user != GATEWAY:
+        sent += [
+            (keys.link_tx(target), FORGED_LINK),
+            (keys.link_rx(target), FORGED_LINK),
+            (keys.link_robot(target, "in"), FORGED_LINK),
+            (keys.link_robot(target, "out"), FORGED_LINK),
+            (keys.gateway("status"), bus.encode_json({"state": "unplugged", "forged": FORGED})),
+        ]
+    return sent
+
+
+def attack(
+    session: zenoh.Session, keys: bus.BusKeys, *, user: str, target: str = "a", body: str = "a"
+) -> tuple[list[object], list[tuple[str, bytes]]]:
+    """Every forgery of :func:`forgeries` from one session of principal ``user`` (each should
+    be dropped by the router), plus spoofed liveliness tokens and a forged ``set`` query.
+
+    Returns the declared entities (tokens, publishers), which must stay alive, and the forged
+    puts.
     """
     kept: list[object] = []
-
-    def send(key: str, payload: bytes) -> None:
+    sent = forgeries(keys, user=user, target=target, body=body)
+    for key, payload in sent:
         publisher = session.declare_publisher(key, **bus.TICK_PATH_QOS)
         kept.append(publisher)
         publisher.put(payload)
-
-    send(keys.tick, bus.encode_tick(bus.TickMessage(10**6, 2e4, (), realtime=False)))
-    send(keys.tick, b"\x01")
-    for command in bus.ControlCommand:
-        send(keys.control, bus.encode_control(command, reason="forged"))
-    if not operator:
-        send(keys.manager_request, bus.encode_control(bus.ControlCommand.STOP, reason="forged"))
-    send(keys.y("a"), bus.encode_vector(20, 0.4, [FORGED]))
-    send(keys.y("a"), b"\x00\x01\x02")
-    send(keys.status("a"), bus.encode_json({"agent": "a", "state": "safe", "detail": "forged"}))
-    send(keys.agent("a", "telemetry/battery"), bus.encode_vector(3, 0.06, [FORGED]))
-    kept.append(session.liveliness().declare_token(keys.alive("a")))
+    kept.append(session.liveliness().declare_token(keys.alive(target)))
     kept.append(session.liveliness().declare_token(keys.alive("_manager")))
-    if not operator:
+    kept.append(session.liveliness().declare_token(keys.alive("_mocap")))
+    if user != OPERATOR:
         for reply in session.get(
-            keys.set("b"), payload=bus.encode_json({"params": {"gain": 50.0}}), timeout=0.5
+            keys.set(target), payload=bus.encode_json({"params": {"gain": 50.0}}), timeout=0.5
         ):
             assert reply.ok is None, "a forged set was answered"
-    return kept
+    return kept, sent
+
+
+class Witness:
+    """A viewer session that hears everything of the run, both through ``**`` and through an
+    explicit subscription per attacked key (publishers such as ``u`` and the link's only send
+    while someone subscribes to their key): whatever the router lets through reaches it."""
+
+    def __init__(self, session: zenoh.Session, keys: bus.BusKeys, attacked: set[str]) -> None:
+        self.got: dict[str, set[bytes]] = {}
+        self._lock = threading.Lock()
+        callback = zenoh.handlers.Callback(self._on_sample, indirect=False)
+        self.subscribers = [session.declare_subscriber(f"{keys.prefix}/**", callback)]
+        for key in sorted(attacked):
+            self.subscribers.append(
+                session.declare_subscriber(
+                    key, zenoh.handlers.Callback(self._on_sample, indirect=False)
+                )
+            )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        with self._lock:
+            self.got.setdefault(str(sample.key_expr), set()).add(sample.payload.to_bytes())
+
+    def heard(self, key: str) -> set[bytes]:
+        with self._lock:
+            return set(self.got.get(key, ()))
+
+    def forged_heard(self, sent: list[tuple[str, bytes]]) -> list[tuple[str, bytes]]:
+        """The forged puts that reached the witness (none should)."""
+        with self._lock:
+            return [(k, p) for k, p in sent if p in self.got.get(k, ())]
 
 
 def test_hostile_clients_cannot_join_forge_or_snoop(
@@ -179,8 +259,11 @@ def test_hostile_clients_cannot_join_forge_or_snoop(
         wait_for(lambda: spy.last_tick() >= 10, 120, "tick 10")
         keys = spy.keys
         kept: list[object] = []
+        sent: list[tuple[str, bytes]] = []
 
-        # No credentials, a wrong password, an unknown user: refused when the session opens.
+        # No credentials, a wrong password, an unknown user: refused when the session opens,
+        # so such a client puts nothing on any key (those of the board links, mocap, the
+        # manager's status, u and x_hat included).
         with pytest.raises(bus.BusConnectionError, match=r"refused|nothing answers"):
             open_as(run, None)
         real = forge(run, agent_user("d"))
@@ -189,11 +272,18 @@ def test_hostile_clients_cannot_join_forge_or_snoop(
             with pytest.raises(bus.BusConnectionError):
                 open_as(run, stolen)
 
+        # A witness that hears whatever the router lets through, on every attacked key.
+        watcher = open_as(run, forge(run, VIEWER))
+        sessions.append(watcher)
+        witness = Witness(watcher, keys, {k for k, _ in forgeries(keys, user=VIEWER)})
+
         # Another principal's credentials: the router's access control drops every forgery.
         for user in (agent_user("d"), agent_user("b"), OPERATOR, VIEWER):
             session = open_as(run, forge(run, user))
             sessions.append(session)
-            kept += attack(session, keys, operator=user == OPERATOR)
+            entities, forged = attack(session, keys, user=user)
+            kept += entities
+            sent += forged
 
         # Snooping with an agent's credentials: only what that agent may hear arrives.
         d = open_as(run, forge(run, agent_user("d")))
@@ -213,11 +303,116 @@ def test_hostile_clients_cannot_join_forge_or_snoop(
     assert inputs.seen() == []
 
     recording = check_untouched(run, initial)
+    # The witness heard the genuine traffic of the attacked agent's keys, never a forgery.
+    for key in (keys.tick, keys.manager_status, keys.y("a"), keys.u("a"), keys.x_hat("a")):
+        assert witness.heard(key), f"the witness heard nothing on {key}"
+    assert witness.forged_heard(sent) == []
     for name in AGENTS:
         for message in recording.get(f"/{name}/status", []):
             assert "forged" not in str(message.get("detail", "")), message
             assert "gain" not in str(message.get("detail", "")), message
     assert str(FORGED) not in json.dumps(recording, default=str)  # no forged value anywhere
+    events = [m.get("state") for m in recording.get("/orchestrator/status", [])]
+    assert "paused" not in events and "estop" not in events, events
+
+
+def mocap_xbee_run(tmp_path: Path) -> Path:
+    """graphs/lead_follow_mocap.toml (realtime, poses from the simulated mocap system) with
+    every robot behind a simulated XBee radio: the run has every key that reaches a board or a
+    pose, each with a principal of its own (agents, ``mocap``, ``gateway``).
+
+    ``max_late_fraction = 0.5``: a loaded test machine makes a few percent of ticks late; the
+    frozen swarm of a forged tick (the issue: 84 % late) would still fail the run.
+    """
+    text = (REPO / "graphs" / "lead_follow_mocap.toml").read_text(encoding="utf-8")
+    replace = {
+        'mode = "realtime"': 'mode = "realtime"\nmax_late_fraction = 0.5',
+        "duration_s = 20.0": f"duration_s = {MOCAP_TICKS / 20}",
+        "[graph]": '[gateway]\nport = "sim"\nseed = 1\n\n[graph]',
+        'link = "sim://"\n': "",
+    }
+    for i, name in enumerate(("leader", "f1", "f2"), 1):
+        replace[f"[agents.{name}]\n"] = (
+            f'[agents.{name}]\nlink = "xbee://0013A2004000000{i}?sim=sim://duemilanove"\n'
+        )
+    for old, new in replace.items():
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    path = tmp_path / "mocap_xbee.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+#: Realtime ticks (20 Hz) of the attacked mocap + XBee run.
+MOCAP_TICKS = 240
+
+
+@pytest.mark.slow
+def test_hostile_clients_cannot_reach_boards_poses_or_the_record(
+    tmp_path: Path, runs: list[RunProcess], sessions: list[zenoh.Session]
+) -> None:
+    """The leader's board link (over the gateway), its mocap body's pose, the mocap and gateway
+    status, the manager's status, its u and x_hat: forged with every other principal's
+    credentials, none reaches the agents, the gateway, the mocap process or the recording."""
+    run = RunProcess(tmp_path, mocap_xbee_run(tmp_path), "--no-check")
+    runs.append(run)
+    spy = connect_spy(run, "lead_follow_mocap")
+    keys = spy.keys
+    try:
+        with pytest.raises(bus.BusConnectionError, match=r"refused|nothing answers"):
+            open_as(run, None)
+        watcher = open_as(run, forge(run, VIEWER))
+        sessions.append(watcher)
+        attacked = {k for k, _ in forgeries(keys, user=VIEWER, target="leader", body="frisbee1")}
+        witness = Witness(watcher, keys, attacked)
+        wait_for(lambda: spy.last_tick() >= 20, 120, "tick 20")
+        kept: list[object] = []
+        sent: list[tuple[str, bytes]] = []
+        # f2 hears f1, not the leader; the others' roles are elsewhere.
+        for user in (agent_user("f2"), agent_user("f1"), OPERATOR, VIEWER, MOCAP, GATEWAY):
+            session = open_as(run, forge(run, user))
+            sessions.append(session)
+            entities, forged = attack(session, keys, user=user, target="leader", body="frisbee1")
+            kept += entities
+            sent += forged
+        assert spy.last_tick() < MOCAP_TICKS - 20, "the run ended before the attacks were over"
+    finally:
+        spy.close()
+    assert run.wait(300) == 0, run.output()
+    assert "stopped: completed" in run.output(), run.output()
+
+    # The witness heard the genuine traffic on the leader's board link, its body's pose, the
+    # mocap status, the manager's status, u and x_hat: the router forwards these keys to a
+    # listener allowed to hear them, and dropped every forgery on them.
+    for key in (
+        keys.link_tx("leader"),
+        keys.link_rx("leader"),
+        keys.link_robot("leader", "in"),
+        keys.link_robot("leader", "out"),
+        keys.mocap("frisbee1"),
+        keys.mocap_status,
+        keys.manager_status,
+        keys.u("leader"),
+        keys.x_hat("leader"),
+        keys.y("leader"),
+    ):
+        assert witness.heard(key), f"the witness heard nothing on {key}"
+    assert witness.forged_heard(sent) == []
+
+    # Nothing forged in the record: no forged value, no safe / lost / e-stop, and the swarm
+    # kept ticking (realtime skips a tick that comes too late; a frozen swarm runs none).
+    recording = read_recording(run.out)
+    assert str(FORGED) not in json.dumps(recording, default=str)
+    for name in ("leader", "f1", "f2"):
+        ks = [m["k"] for m in recording[f"/{name}/y"]]
+        assert len(ks) > MOCAP_TICKS // 2 and ks == sorted(set(ks)), (name, ks)
+        for message in recording.get(f"/{name}/status", []):
+            detail = str(message.get("detail", ""))
+            assert "forged" not in detail, message
+            assert message["state"] not in ("lost", "estop"), message
+            assert message["state"] != "safe" or "completed" in detail or "stop" in detail, message
+        xy = np.array([m["values"][:2] for m in recording[f"/{name}/y"]], dtype=float)
+        assert np.all(np.abs(xy) < 3.0), name  # poses of the 1 m square, not forged ones
     events = [m.get("state") for m in recording.get("/orchestrator/status", [])]
     assert "paused" not in events and "estop" not in events, events
 

@@ -5,6 +5,7 @@ namespace of the test's own), and ``hilswarm recover`` on a full disk."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import socket
@@ -163,6 +164,49 @@ def test_a_full_disk_stops_the_run_safely_by_default(tmp_path: Path) -> None:
     # what reached the disk is readable (every chunk written before the disk filled)
     ks = [m["k"] for topic, _, m in iter_messages(keep / "run.mcap") if topic == "/a/y"]
     assert ks == list(range(len(ks))) and len(ks) > 10
+
+
+def test_a_full_disk_with_policy_continue_runs_to_the_end_unrecorded(tmp_path: Path) -> None:
+    """``on_recording_failure = "continue"``: the disk fills early, the run goes on to its last
+    tick unrecorded, exits 3, and the summary says from which tick on nothing was recorded."""
+    experiment = write_toy_experiment(tmp_path / "toy.toml", duration_s=300.0)  # 15000 ticks
+    text = experiment.read_text(encoding="utf-8")
+    experiment.write_text(
+        text.replace(
+            'mode = "lockstep"\n', 'mode = "lockstep"\non_recording_failure = "continue"\n'
+        ),
+        encoding="utf-8",
+    )
+    last = 15000 - 1
+    disk, keep = tmp_path / "disk", tmp_path / "keep"
+    command = " ".join([*CLI, "run", str(experiment), "--no-check", "--out",
+                        f"{disk}/run.mcap"])  # fmt: skip
+    code, output = in_small_tmpfs("256k", disk, command, keep)
+    assert code == 3, output
+    assert "Traceback" not in output, output
+    assert "outcome: degraded (exit status 3)" in output, output
+    # the disk filled while the run ticked, and the run went on to its last tick
+    failed = re.search(r"at tick (\d+); recording stopped: the disk is full", output)
+    assert failed is not None, output
+    assert int(failed.group(1)) < last, output
+    assert "on_recording_failure = continue" in output, output
+    assert "on_recording_failure = stop" not in output, output
+    assert "15000/15000 ticks" in output and "stopped: completed" in output, output
+    # each write error of the full disk is shown once, not once per record
+    assert output.count("No space left on device") < 10, output[-3000:]
+    # the summary says what was not recorded: from which tick, at most how many records
+    stopped = re.search(
+        rf"recording: stopped at tick (\d+); ticks \1\.\.{last} are not recorded, or only in part",
+        output,
+    )
+    assert stopped is not None, output
+    first_lost = int(stopped.group(1))
+    lost = rf"recording: at most \d+ records lost \(ticks {first_lost}\.\.{last}, "
+    assert re.search(lost, output), output
+    # what reached the disk is readable, and holds every tick before the first one reported
+    # not recorded (records not acknowledged by the recorder may be there too)
+    ks = [m["k"] for topic, _, m in iter_messages(keep / "run.mcap") if topic == "/a/y"]
+    assert ks == list(range(len(ks))) and len(ks) >= first_lost > 10, (len(ks), first_lost)
 
 
 def test_recover_on_a_full_disk_says_so_and_leaves_no_file(tmp_path: Path) -> None:

@@ -2,14 +2,30 @@
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
+from hilswarm.agents.mocap.qtm_sim import QtmSimulator, SimSettings
 from hilswarm.orchestrator.checks import check_file
 from hilswarm.orchestrator.cli import main
 
 DATA = Path(__file__).resolve().parent / "data"
 GRAPHS = Path(__file__).resolve().parents[2] / "graphs"
+SIM_MOCAP = '[mocap]\nsystem = "sim"\n'
+
+
+@contextlib.contextmanager
+def real_mocap(*bodies: str) -> Iterator[str]:
+    """A "real" Qualisys system that sees ``bodies`` (the protocol-level simulator on a free
+    loopback port, addressed as a user with a Qualisys system would); yields its [mocap] table."""
+    with QtmSimulator(SimSettings(bodies=bodies)) as sim:
+        for body in bodies:
+            sim.set_truth(body, np.zeros(6))
+        yield f'[mocap]\nsystem = "qualisys"\nhost = "127.0.0.1"\nport = {sim.port}\n'
+
 
 #: broken file -> (file the problem is in, key, part of the reason)
 CASES: dict[str, tuple[str, str, str]] = {
@@ -194,9 +210,15 @@ def test_link_override_is_checked_deeply(capsys: pytest.CaptureFixture[str]) -> 
     err = capsys.readouterr().err
     assert f"{path}:agents.leader.link: agent 'leader': vehicle 'frisbee' needs a pose" in err
     assert "[mocap]" in err
-    # With a mocap system the same override is fine (its bodies come from the simulator).
+    # The demo's mocap system is the simulator, whose cameras see only simulated robots: a
+    # real board there cannot run either, and check says what to change.
     mocap = GRAPHS / "lead_follow_mocap.toml"
-    assert main(["check", str(mocap), "--link", "leader=socket://127.0.0.1:5760"]) == 0
+    assert main(["check", str(mocap), "--link", "leader=socket://127.0.0.1:5760"]) == 2
+    err = capsys.readouterr().err
+    assert f"{mocap}:mocap.system: " in err
+    assert "agent 'leader' (link 'socket://127.0.0.1:5760') has a real board" in err
+    assert "set [mocap] system to your real motion capture system" in err
+    assert "needs a pose" not in err  # the pose would come from [mocap], were it real
 
 
 @pytest.mark.parametrize(
@@ -230,8 +252,9 @@ def test_network_serial_urls_are_only_syntax_checked(tmp_path: Path) -> None:
     text = (DATA / "shared_serial.toml").read_text()
     text = text.replace('link = "socket://127.0.0.1:5760"', 'link = "rfc2217://127.0.0.1:1"', 1)
     path = tmp_path / "net.toml"
-    path.write_text(text)  # nobody listens on either port: check does not connect
-    report = check_file(path)
+    with real_mocap("leader", "f1") as table:  # real boards need a real mocap system
+        path.write_text(text.replace(SIM_MOCAP, table))
+        report = check_file(path)  # nobody listens on either board's port: not connected
     assert report.ok, report.problems
 
 
@@ -243,18 +266,62 @@ def test_vehicle_that_needs_a_pose_on_a_real_link_needs_mocap(tmp_path: Path) ->
     assert "agent 'leader'" in problem.message and "[mocap]" in problem.message
     # simulated boards simulate the motion capture too
     assert check_file(path, overrides={"links": {"leader": "simavr://uno"}}).ok
-    # with a [mocap] table the pose comes from it
+    # with a [mocap] table the pose comes from it: no "needs a pose" problem (the simulated
+    # system's own rule for real boards: test_sim_mocap_with_a_real_board_is_a_problem)
     text = path.read_text().replace('mode = "lockstep"', 'mode = "realtime"')
     text += '\n[mocap]\nsystem = "sim"\n'
     with_mocap = tmp_path / "lead_follow.toml"
     with_mocap.write_text(text)
-    assert check_file(with_mocap, overrides={"links": {"leader": "socket://127.0.0.1:5760"}}).ok
+    report = check_file(with_mocap, overrides={"links": {"leader": "socket://127.0.0.1:5760"}})
+    assert [p.key for p in report.problems] == ["mocap.system"], report.problems
+    with real_mocap("leader", "f1", "f2") as table:
+        with_mocap.write_text(text.replace(SIM_MOCAP, table))
+        report = check_file(with_mocap, overrides={"links": {"leader": "socket://127.0.0.1:5760"}})
+    assert report.ok, report.problems
     blimp = (DATA / "shared_serial.toml").read_text().replace('"frisbee"', '"blimpduino"')
     blimp = blimp.replace('[mocap]\nsystem = "sim"\n', "")
     blimp_path = tmp_path / "blimp.toml"
     blimp_path.write_text(blimp)
     keys = {p.key for p in check_file(blimp_path).problems if "needs a pose" in p.message}
     assert keys == {"agents.leader.link", "agents.f1.link"}
+
+
+def test_sim_mocap_with_a_real_board_is_a_problem(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The simulated cameras see only simulated plants: with ``[mocap] system = "sim"`` an
+    agent on a real board could never be seen. check and run say so and what to change."""
+    demo = GRAPHS / "lead_follow_mocap.toml"
+    real = {"leader": "socket://127.0.0.1:9"}
+    [problem] = check_file(demo, overrides={"links": real}).problems
+    assert problem.key == "mocap.system"
+    assert "agent 'leader' (link 'socket://127.0.0.1:9') has a real board" in problem.message
+    assert "set [mocap] system to your real motion capture system" in problem.message
+    assert "or give that agent a simulated link" in problem.message
+    # several real boards: one problem naming them all
+    two = {"leader": "socket://127.0.0.1:9", "f2": "rfc2217://127.0.0.1:10"}
+    [problem] = check_file(demo, overrides={"links": two}).problems
+    assert problem.key == "mocap.system"
+    assert "agents 'leader' (link 'socket://127.0.0.1:9'), 'f2' (link" in problem.message
+    assert "have real boards" in problem.message
+    # every simulated link feeds the simulator its plant's true pose
+    for url in ("sim://duemilanove", "simavr://uno", "xbee://0013A20040000001?sim=sim://uno"):
+        report = check_file(demo, overrides={"links": {"leader": url}})
+        assert report.ok, (url, report.problems)
+    # run refuses it before starting anything, with the same file:key: reason
+    out = tmp_path / "run.mcap"
+    assert main(["run", str(demo), "--out", str(out), "--link", "leader=socket://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err
+    assert f"{demo}:mocap.system: " in err and "set [mocap] system to your real" in err, err
+    assert not out.exists()
+    # the change it asks for: a real system that sees the robots' bodies
+    head, _, rest = demo.read_text().partition("\n[mocap]\n")
+    _, _, graph = rest.partition("\n[graph]\n")
+    path = tmp_path / "real.toml"
+    with real_mocap("frisbee1", "frisbee2", "frisbee3") as table:
+        path.write_text(f"{head}\n{table}\n[graph]\n{graph}")
+        report = check_file(path, overrides={"links": real})
+    assert report.ok, report.problems
 
 
 @pytest.mark.parametrize(
@@ -326,10 +393,12 @@ def test_remote_agents_links_are_not_checked_for_local_devices(tmp_path: Path) -
     text = (DATA / "shared_serial.toml").read_text()
     text = text.replace('link = "socket://127.0.0.1:5760"', 'link = "/dev/ttyUSB9"', 1)
     path = tmp_path / "remote.toml"
-    path.write_text(text)
-    assert "does not exist" in " ".join(p.message for p in check_file(path).problems)
-    # the leader's board is plugged into another machine (hilswarm run --remote leader)
-    assert check_file(path, remote=["leader"]).ok
+    with real_mocap("leader", "f1") as table:  # real boards need a real mocap system
+        path.write_text(text.replace(SIM_MOCAP, table))
+        assert "does not exist" in " ".join(p.message for p in check_file(path).problems)
+        # the leader's board is plugged into another machine (hilswarm run --remote leader)
+        report = check_file(path, remote=["leader"])
+    assert report.ok, report.problems
 
 
 def test_hilswarm_agent_checks_only_its_own_device(
