@@ -8,13 +8,18 @@ machine are honest but low, ratios are what to compare):
 2. **Bus hop**: the round trip an agent's frame makes to the gateway's process and back over
    the bus (``agent/<name>/link/tx`` -> a subscriber -> ``link/rx``) [ms], against a local
    call.
-3. **Largest N with no late ticks** (unicast), at 20 and 50 Hz: N Frisbee-sized robots
-   (``SimBoard`` behind ``WireServer``) on one simulated 115200-baud coordinator, the real
-   gateway, N ``xbee://`` boards ticking together each period; a tick is late when not every
-   reply is in within the period. Reported as a fraction of the computed bound (air and host
-   UART, ``agents/xbee/budget.py``). Target: unicast >= 80 % of its bound.
+3. **Largest N with no late ticks**, unicast against the packed broadcast (``[gateway] mode =
+   "broadcast"``, replies every ``--reply-every`` (5) ticks, round-robin), at 20 and 50 Hz: N
+   Frisbee-sized robots (``SimBoard`` behind ``WireServer``) on one simulated 115200-baud
+   coordinator, the real gateway, N ``xbee://`` boards ticking together each period; a tick is
+   late when not every reply is in within the period (a broadcast robot's reply on its reply
+   ticks is its own fresh sample: the radio round trip). Each N is reported as a fraction of
+   two computed bounds: the throughput bound (air and host UART per tick,
+   ``agents/xbee/budget.py``) and the latency bound (that, plus one tick's fill and drain: the
+   frames through the host UART, the air, the robot's UART and back). Targets: unicast >= 80 %
+   of its bound; broadcast >= 16 robots at 50 Hz.
 
-    python benchmarks/xbee_gateway.py [--short] [--ticks K]
+    python benchmarks/xbee_gateway.py [--short] [--ticks K] [--reply-every M]
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ import os
 import statistics
 import threading
 import time
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 from digi.xbee.models.address import XBee64BitAddress
 from digi.xbee.models.mode import OperatingMode
@@ -32,11 +39,18 @@ from digi.xbee.packets.factory import build_frame
 from digi.xbee.packets.raw import TX64Packet
 from hilswarm.agents import bus
 from hilswarm.agents.errors import BoardError
-from hilswarm.agents.link.board import PinConfig, PinMode
+from hilswarm.agents.link.board import BoardStatus, PinConfig, PinMode, TickReply
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.xbee.air import AirParams, uart_s
 from hilswarm.agents.xbee.api_frames import ApiFrameDecoder, Rx64Packet, Tx64Request, encode_frame
-from hilswarm.agents.xbee.budget import RobotTraffic, gateway_budget, tick_frame_sizes
+from hilswarm.agents.xbee.budget import (
+    RobotTraffic,
+    bcast_frame_sizes,
+    broadcast_budget,
+    gateway_budget,
+    section_size,
+    tick_frame_sizes,
+)
 from hilswarm.agents.xbee.config import GatewayConfig
 from hilswarm.agents.xbee.gateway import Gateway
 from hilswarm.agents.xbee.sim_coordinator import SimCoordinator, SimRemote
@@ -131,29 +145,157 @@ def bound(rate_hz: float) -> tuple[int, str]:
         n, binding = n + 1, worst
 
 
+def bcast_bound(rate_hz: float, reply_every: int) -> tuple[int, str]:
+    """Largest N the broadcast budget allows at ``rate_hz`` and which resource binds."""
+    request, reply = tick_frame_sizes(FRISBEE)
+    section = section_size(FRISBEE)
+    n = 0
+    binding = "air"
+    while n < 255:
+        robots = [RobotTraffic(str(i), request, reply, section, reply_every) for i in range(n + 1)]
+        fractions = broadcast_budget(robots, rate_hz=rate_hz).fractions()
+        worst = max(fractions, key=lambda k: fractions[k])
+        if fractions[worst] > 1.0:
+            return n, binding
+        n, binding = n + 1, worst
+    return n, binding
+
+
+def bcast_tick_s(n: int, reply_every: int) -> float:
+    """A broadcast tick's fill and drain [s] (model): the BCAST frames through the host UART and
+    the air, all of them through the robot's UART (its radio passes every broadcast on), the
+    reply's UART and packetization, then the tick's replies one after the other on the air and
+    the last one's RX frame on the host UART."""
+    _request, reply = tick_frame_sizes(FRISBEE)
+    p = AirParams()
+    frames = bcast_frame_sizes([section_size(FRISBEE)] * n)
+    replies = max(
+        sum(1 for i in range(n) if (k + i) % reply_every == 0) for k in range(reply_every)
+    )
+    return (
+        sum(uart_s(15 + f, 115200) + p.mean_broadcast_s(f) for f in frames)
+        + uart_s(sum(frames), 115200)
+        + uart_s(reply + p.packetization_chars, 115200)
+        + replies * p.mean_unicast_s(reply)
+        + uart_s(15 + reply, 115200)
+    )
+
+
+def bcast_delivery_s(n: int) -> float:
+    """When the last robot has a tick's outputs (model) [s]: the BCAST frames through the host
+    UART and the air, and all of them through the robot's UART (what ``answer = "at_once"``
+    waits for: nothing else)."""
+    p = AirParams()
+    frames = bcast_frame_sizes([section_size(FRISBEE)] * n)
+    return sum(uart_s(15 + f, 115200) + p.mean_broadcast_s(f) for f in frames) + uart_s(
+        sum(frames), 115200
+    )
+
+
+def bcast_latency_bound(rate_hz: float, reply_every: int) -> int:
+    """Largest N whose broadcast tick (fill and drain included) fits the period."""
+    n = 0
+    while n < 255 and bcast_tick_s(n + 1, reply_every) <= 1.0 / rate_hz:
+        n += 1
+    return n
+
+
+class TimedSimBoard(SimBoard):
+    """A SimBoard that notes when each PWM-5 value reached it [s, monotonic]."""
+
+    def __init__(self, **options: object) -> None:
+        super().__init__(**options)  # type: ignore[arg-type]
+        self.arrivals: list[tuple[float, int]] = []
+
+    def exchange(self, writes: Mapping[int, int], reads: Sequence[int]) -> TickReply:
+        """As SimBoard's; notes the arrival of ``writes[5]``."""
+        if 5 in writes:
+            self.arrivals.append((time.monotonic(), writes[5]))
+        return super().exchange(writes, reads)
+
+
+def delivery_s(sims: list[TimedSimBoard], starts: list[float]) -> list[float]:
+    """Per tick: when the last robot got the tick's outputs, after the tick started [s]
+    (infinity: some robot never did). Tick k writes PWM 5 = k % 250."""
+    out = []
+    for k, start in enumerate(starts):
+        worst = 0.0
+        for sim in sims:
+            got = [t for t, v in sim.arrivals if v == k % 250 and t >= start]
+            worst = max(worst, (got[0] - start) if got else float("inf"))
+        out.append(worst)
+    return out
+
+
+@dataclass
+class TickRun:
+    """What one configuration's run measured.
+
+    Attributes:
+        tick_s: per tick, the later of the slowest exchange and the delivery of the tick's
+            outputs to the last robot, after the tick's start [s] (inf: never).
+        failed_ticks: ticks with a failed exchange.
+        failed: failed exchanges.
+        stale: replies marked STALE.
+        dt: the tick period [s].
+    """
+
+    tick_s: list[float]
+    failed_ticks: list[bool]
+    failed: int
+    stale: int
+    dt: float
+
+    def late(self, periods: float = 1.0) -> int:
+        """Ticks with a failure or not done within ``periods`` periods."""
+        return sum(
+            f or t > periods * self.dt for f, t in zip(self.failed_ticks, self.tick_s, strict=True)
+        )
+
+
 def ticks_on_time(
-    endpoint: str, n: int, rate_hz: float, ticks: int
-) -> tuple[int, int, list[float]]:
-    """Run ``n`` robots at ``rate_hz`` for ``ticks``; return (late ticks, failed exchanges,
-    tick durations [s])."""
+    endpoint: str,
+    n: int,
+    rate_hz: float,
+    ticks: int,
+    *,
+    mode: str = "unicast",
+    reply_every: int = 1,
+    answer: str = "wait",
+) -> TickRun:
+    """Run ``n`` robots at ``rate_hz`` for ``ticks`` (at most 249) after one untimed tick.
+
+    Tick k is done when every exchange returned and every robot drives tick k's outputs (with
+    ``answer = "at_once"`` the answers do not wait for the air: the delivery is what says
+    whether the radio keeps up)."""
     names = [f"r{i}" for i in range(n)]
     addresses = {name: ADDRESS + 1 + i for i, name in enumerate(names)}
-    sims = [SimBoard(dt=1 / rate_hz) for _ in names]
+    sims = [TimedSimBoard(dt=1 / rate_hz) for _ in names]
     remotes = [SimRemote(addresses[nm], WireServerUart(sims[i])) for i, nm in enumerate(names)]
     session = bus.open_session(bus.client_config([endpoint]))
     boards = []
-    late = failed = 0
-    durations: list[float] = []
+    failed = stale = 0
+    exchange_s: list[float] = []
+    failed_ticks: list[bool] = []
+    starts: list[float] = []
     dt = 1.0 / rate_hz
     with (
         SimCoordinator(remotes, seed=n) as coordinator,
-        Gateway(GatewayConfig(), bus.BusKeys(EXP), addresses, session, port_url=coordinator.url),
+        Gateway(
+            GatewayConfig(mode=mode, answer=answer),
+            bus.BusKeys(EXP),
+            addresses,
+            session,
+            port_url=coordinator.url,
+            reply_every=dict.fromkeys(names, reply_every),
+            rate_hz=rate_hz,
+        ),
         ThreadPoolExecutor(max_workers=n) as pool,
     ):
         try:
             for name in names:
                 board = board_from_url(
-                    f"xbee://{addresses[name]:016X}?timeout_s={dt}&retries=0",
+                    f"xbee://{addresses[name]:016X}?timeout_s=0.5&retries=2",
                     endpoints=[endpoint],
                     experiment=EXP,
                     agent=name,
@@ -161,34 +303,44 @@ def ticks_on_time(
                 boards.append(board)
                 board.open()
                 board.configure(FRISBEE, watchdog_s=0)
+                board.timeout_s, board.retries = dt, 0  # a tick's reply within its period
 
-            def one(board: object, k: int) -> bool:
+            def one(board: object, k: int) -> int:
+                """1 fresh, 2 stale, 0 failed."""
                 try:
-                    board.exchange({5: k % 200, 6: 10, 7: k % 2}, [14])  # type: ignore[attr-defined]
+                    reply = board.exchange({5: k % 250, 6: 10, 7: k % 2}, [14])  # type: ignore[attr-defined]
                 except BoardError:
-                    return False
-                return True
+                    return 0
+                return 2 if reply.status & BoardStatus.STALE else 1
 
+            # one untimed tick first: in broadcast mode every robot answers the first one (the
+            # gateway has no samples of it yet)
+            for f in [pool.submit(one, b, 249) for b in boards]:
+                f.result()
+            time.sleep(dt)  # benchmark only: the warm-up tick's frames land
             next_t = time.monotonic()
             for k in range(ticks):
+                starts.append(next_t)
                 futures = [pool.submit(one, b, k) for b in boards]
                 ok = [f.result() for f in futures]
-                failed += ok.count(False)
-                done = time.monotonic()
-                durations.append(done - next_t)
-                if done - next_t > dt or not all(ok):
-                    late += 1
+                failed += ok.count(0)
+                stale += ok.count(2)
+                failed_ticks.append(not all(ok))
+                exchange_s.append(time.monotonic() - next_t)
                 next_t += dt
                 wait = next_t - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)  # the tick schedule (benchmark only)
                 else:
                     next_t = time.monotonic()
+            time.sleep(0.3)  # benchmark only: the last ticks' frames land
         finally:
             for board in boards:
                 board.close()
             session.close()
-    return late, failed, durations
+    delivered = delivery_s(sims, starts)
+    tick_s = [max(a, b) for a, b in zip(exchange_s, delivered, strict=True)]
+    return TickRun(tick_s, failed_ticks, failed, stale, dt)
 
 
 def latency_bound(rate_hz: float) -> tuple[int, float]:
@@ -216,8 +368,8 @@ def bench_capacity(endpoint: str, rate_hz: float, ticks: int) -> None:
     n_latency, fixed = latency_bound(rate_hz)
     best = best_1pc = 0
     for n in range(1, n_bound + 2):
-        late, failed, durations = ticks_on_time(endpoint, n, rate_hz, ticks)
-        durations.sort()
+        run = ticks_on_time(endpoint, n, rate_hz, ticks)
+        late, failed, durations = run.late(), run.failed, sorted(run.tick_s)
         print(
             f"  unicast {rate_hz:g} Hz, N={n}: {late}/{ticks} late ticks, {failed} failed; "
             f"tick p50 {durations[len(durations) // 2] * 1e3:.1f} ms, "
@@ -239,20 +391,98 @@ def bench_capacity(endpoint: str, rate_hz: float, ticks: int) -> None:
     )
 
 
+def bench_broadcast(
+    endpoint: str,
+    rate_hz: float,
+    ticks: int,
+    reply_every: int,
+    *,
+    step: int,
+    answer: str = "wait",
+    max_n: int = 255,
+) -> None:
+    """Largest N (at most ``max_n``) with no late ticks by packed broadcast vs its bounds."""
+    n_bound, binding = bcast_bound(rate_hz, reply_every)
+    n_latency = bcast_latency_bound(rate_hz, reply_every)
+
+    def model(n: int) -> float:
+        return bcast_tick_s(n, reply_every) if answer == "wait" else bcast_delivery_s(n)
+
+    if answer == "at_once":  # the outputs' delivery is the latency that must fit
+        n_latency = 0
+        while n_latency < 255 and bcast_delivery_s(n_latency + 1) <= 1.0 / rate_hz:
+            n_latency += 1
+    best = best_1pc = best_2 = 0
+    n = 1
+    while n <= min(n_bound + 1, max_n):
+        run = ticks_on_time(
+            endpoint, n, rate_hz, ticks, mode="broadcast", reply_every=reply_every, answer=answer
+        )
+        late, failed, stale, durations = run.late(), run.failed, run.stale, sorted(run.tick_s)
+        print(
+            f"  broadcast ({answer}) {rate_hz:g} Hz, reply_every {reply_every}, N={n}: "
+            f"{late}/{ticks} late "
+            f"ticks ({run.late(2.0)} not done within 2 periods), {failed} failed, "
+            f"{stale}/{n * ticks} replies stale; tick p50 "
+            f"{durations[len(durations) // 2] * 1e3:.1f} ms, max {durations[-1] * 1e3:.1f} ms "
+            f"(model {model(n) * 1e3:.1f} ms); {load()}"
+        )
+        if late == 0:
+            best = n
+        if late <= ticks // 100:
+            best_1pc = n
+        if run.late(2.0) == 0:
+            best_2 = n
+        # at_once: go on while the radio keeps up (every tick's outputs within two periods)
+        if (run.late(2.0) if answer == "at_once" else late) > ticks // 100:
+            break
+        n = n + step if n > 1 else step
+    print(
+        f"  (largest N with at most 1 % late ticks: {best_1pc}; with every tick's outputs "
+        f"delivered within two periods: {best_2})"
+    )
+    print(
+        f"broadcast ({answer}) at {rate_hz:g} Hz, reply_every {reply_every}: largest N with no "
+        "late tick "
+        f"{best} (step {step}); throughput bound {n_bound} ({binding}): "
+        f"{best / n_bound if n_bound else 0:.0%} of it; latency bound (fill and drain) "
+        f"{n_latency}: {best / n_latency if n_latency else 0:.0%} of it (target >= 16 at 50 Hz); "
+        f"{load()}"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--short", action="store_true", help="CI size (well under a minute)")
     parser.add_argument("--ticks", type=int, default=None, help="ticks per configuration")
+    parser.add_argument("--reply-every", type=int, default=5, help="broadcast: reply every M")
+    parser.add_argument("--rates", type=float, nargs="+", default=None, help="tick rates [Hz]")
+    parser.add_argument(
+        "--only", choices=("unicast", "broadcast"), default=None, help="one mode's capacity"
+    )
     args = parser.parse_args()
-    ticks = args.ticks or (20 if args.short else 200)
+    ticks = min(args.ticks or (20 if args.short else 200), 249)
     print(load())
     bench_codec(2000 if args.short else 20000)
     router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
     endpoint = bus.bound_endpoints(router)[0]  # the free port the router bound
     try:
         bench_bus_hop(endpoint, 100 if args.short else 1000)
-        for rate in (20.0,) if args.short else (20.0, 50.0):
-            bench_capacity(endpoint, rate, ticks)
+        for rate in args.rates or ((20.0,) if args.short else (20.0, 50.0)):
+            if args.only != "broadcast":
+                bench_capacity(endpoint, rate, ticks)
+            if args.only != "unicast":
+                step = 8 if args.short else (4 if rate < 30 else 2)
+                for answer in ("wait",) if args.short else ("wait", "at_once"):
+                    bench_broadcast(
+                        endpoint,
+                        rate,
+                        ticks,
+                        args.reply_every,
+                        step=step,
+                        answer=answer,
+                        max_n=16 if args.short else 255,
+                    )
     finally:
         router.close()
 

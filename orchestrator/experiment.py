@@ -112,6 +112,8 @@ class AgentSpec:
             ``None``.
         mocap_body: the agent's rigid body in the motion-capture system (``None``: its name,
             see :attr:`body`).
+        reply_every: ``xbee://`` robots in broadcast mode: answer every m-th tick (``None``:
+            every tick).
     """
 
     name: str
@@ -124,6 +126,7 @@ class AgentSpec:
     initial_state: tuple[float, ...] = ()
     calibration: Path | None = None
     mocap_body: str | None = None
+    reply_every: int | None = None
 
     @property
     def body(self) -> str:
@@ -598,6 +601,7 @@ class _Loader:
             initial_state=tuple(merged.get("initial_state", ())),
             calibration=(self.path.parent / calibration).resolve() if calibration else None,
             mocap_body=merged.get("mocap_body"),
+            reply_every=merged.get("reply_every"),
         )
 
     def _link_ok(self, name: str, url: str) -> bool:

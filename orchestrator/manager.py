@@ -186,6 +186,7 @@ class InstanceManager:
         self.window = 1 if self._realtime else experiment.lockstep_window
         self._tick = TickWindow(self.n, self.window)
         self._frames: list[bytes] = []
+        self._frames_since = -1  # the tick at which _frames began gathering (-1: unknown)
         self.agent_states: dict[str, str] = {}
         # Rare events for the ticking thread: liveliness, control, stop, safe, lockstep done.
         self._events: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
@@ -455,7 +456,10 @@ class InstanceManager:
             data = b"".join(frames)
             count = len(frames)
             frames.clear()
-        sink.write(data, count=count, tick=self._tick.base)
+            # the batch holds records gathered since the last one: of its tick on
+            first, tick = self._frames_since, self._tick.base
+            self._frames_since = tick
+        sink.write(data, count=count, tick=tick, first_tick=first)
 
     def request_stop(self, reason: str) -> None:
         """Ask the run to stop (thread-safe, signal-safe): agents to safe, then stopped."""

@@ -181,13 +181,15 @@ def decide(
                 last = max(first, min(last, last_tick))
                 seconds = f", {(last - first + 1) * summary.dt_s:.2f} s" if summary.dt_s else ""
                 span = f" ({_ticks(first, last)}{seconds})"
-            degradations.append(f"recording: {recording.lost_records} records lost{span}")
+            # a recording given up: the records it had not acknowledged may be in the file
+            bound = "at most " if recording.stopped_at_tick is not None else ""
+            degradations.append(f"recording: {bound}{recording.lost_records} records lost{span}")
         elif recording.failures and recording.stopped_at_tick is None:
             notes.append("recording: no record lost (every segment is complete)")
         if recording.stopped_at_tick is not None:
             degradations.append(
                 f"recording: stopped at tick {recording.stopped_at_tick}; "
-                f"ticks {recording.stopped_at_tick}..{last_tick} are not recorded"
+                f"ticks {recording.stopped_at_tick}..{last_tick} are not recorded, or only in part"
             )
         if len(recording.segments) > 1:
             notes.append("recording in segments: " + ", ".join(recording.segments))

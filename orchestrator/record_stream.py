@@ -86,8 +86,10 @@ ORCHESTRATOR = "orchestrator"
 class RecordSink(Protocol):
     """Where the manager's frames go (the recorder process's pipe, or a recorder in-process)."""
 
-    def write(self, data: bytes, *, count: int = 0, tick: int = -1) -> None:
-        """Take a batch of whole frames (``count`` of them, made at the manager's ``tick``)."""
+    def write(self, data: bytes, *, count: int = 0, tick: int = -1, first_tick: int = -1) -> None:
+        """Take a batch of whole frames (``count`` of them, made at the manager's ``tick``, of
+        ticks from ``first_tick`` on, the manager's tick when it began gathering them; -1:
+        unknown)."""
 
 
 # -- encoding (the manager's side) ------------------------------------------------------------
@@ -235,9 +237,9 @@ class FrameRecorder:
         self.frames = 0
         self.errors = 0
 
-    def write(self, data: bytes, *, count: int = 0, tick: int = -1) -> None:
+    def write(self, data: bytes, *, count: int = 0, tick: int = -1, first_tick: int = -1) -> None:
         """:class:`RecordSink` interface: decode and record a batch of whole frames."""
-        del count, tick  # written here and now: nothing to account for
+        del count, tick, first_tick  # written here and now: nothing to account for
         reader = FrameReader()
         self.apply_all(reader.feed(data))
         if reader.pending:

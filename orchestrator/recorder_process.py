@@ -134,6 +134,7 @@ class _Batch:
     data: bytes
     count: int  # records (frames) in it
     tick: int  # the manager's tick when it was handed over (-1: unknown)
+    first_tick: int  # the earliest tick its records can be of (-1: unknown)
 
 
 def _signal_text(code: int | None) -> str:
@@ -436,29 +437,35 @@ class RecorderProcess:
         self._sent.clear()
         self._queue.clear()
         self._queued = 0
-        first = min((b.tick for b in pending if b.tick >= 0), default=self._tick)
+        # every tick before the first batch not acknowledged is on disk; from there on the
+        # records may be missing (the first of them may have reached the file unacknowledged)
+        first = min((b.first_tick for b in pending if b.first_tick >= 0), default=self._tick)
         self._stopped_at_tick = max(first, 0) if self._published else None
         for batch in pending:
-            self._count_lost(batch.count, batch.tick)
+            self._count_lost(batch.count, batch.first_tick, batch.tick)
         self._changed.notify_all()
 
-    def _count_lost(self, count: int, tick: int) -> None:
+    def _count_lost(self, count: int, first_tick: int, tick: int) -> None:
+        """``count`` records of ticks ``first_tick..tick`` are lost (-1: unknown ticks)."""
         if not count:
             return
         self._lost_records += count
         if tick >= 0:
-            first, last = self._lost_ticks or (tick, tick)
-            self._lost_ticks = (min(first, tick), max(last, tick))
+            low = first_tick if first_tick >= 0 else tick
+            first, last = self._lost_ticks or (low, tick)
+            self._lost_ticks = (min(first, low), max(last, tick))
 
     # -- writing -----------------------------------------------------------------------------
 
-    def write(self, data: bytes, *, count: int = 0, tick: int = -1) -> None:
+    def write(self, data: bytes, *, count: int = 0, tick: int = -1, first_tick: int = -1) -> None:
         """Hand a batch of frames to the process; returns at once unless the queue is full.
 
         Args:
             data: whole frames (or pieces of them).
             count: records in ``data`` (for the count of lost records, should any be lost).
             tick: the manager's tick when the batch was made (-1: unknown).
+            first_tick: the earliest tick its records can be of (the manager's tick when it
+                began gathering them; -1: ``tick``). What is reported lost counts from here.
 
         While ``queue_bytes`` of records wait for the pipe or an acknowledgement, this waits
         for room (logged once: the recorder cannot keep up); a batch larger than the bound
@@ -468,9 +475,10 @@ class RecorderProcess:
             return
         changed = self._changed
         with changed:
+            first = min(first_tick, tick) if first_tick >= 0 else tick
             self._tick = max(self._tick, tick)
             if self._failed:
-                self._count_lost(count, tick)
+                self._count_lost(count, first, tick)
                 return
             if self._queued and self._queued + len(data) > self._queue_bytes:
                 self.write_waits += 1
@@ -484,7 +492,7 @@ class RecorderProcess:
                     )
                 while self._queued and self._queued + len(data) > self._queue_bytes:
                     if self._failed:
-                        self._count_lost(count, tick)
+                        self._count_lost(count, first, tick)
                         return
                     changed.wait(1.0)
             if self._closing:
@@ -493,10 +501,10 @@ class RecorderProcess:
                     len(data),
                     self.path,
                 )
-                self._count_lost(count, tick)
+                self._count_lost(count, first, tick)
                 return
             self._seq += 1
-            self._queue.append(_Batch(self._seq, bytes(data), count, tick))
+            self._queue.append(_Batch(self._seq, bytes(data), count, tick, first))
             self._queued += len(data)
             changed.notify_all()
 

@@ -182,6 +182,10 @@ class AgentTable(_Table):
     mocap_body: Name | None = None
     """Name of this agent's rigid body in the motion-capture system (default: the agent's
     name)."""
+    reply_every: int | None = Field(None, ge=1, le=255)
+    """xbee:// links with [gateway] mode = "broadcast": the robot answers (samples) every
+    reply_every-th tick, round-robin; on the others the gateway repeats its last samples,
+    marked stale (default 1: every tick)."""
 
 
 def _occlusion(window: list[float]) -> list[float]:
@@ -253,6 +257,12 @@ class GatewaySection(_Table):
     """Host UART rate of the coordinator [baud]: an XBee rate (9600 ... 230400)."""
     api_mode: Literal[1, 2] = 1
     """XBee API mode: 1 (API) or 2 (API with escaping, AP = 2)."""
+    mode: Literal["unicast", "broadcast"] = "unicast"
+    """unicast: a TICK and its reply per robot and tick; broadcast: every robot's outputs of a
+    tick in one packed BCAST frame (firmware protocol 2), replies every reply_every-th tick."""
+    answer: Literal["wait", "at_once"] = "wait"
+    """mode = "broadcast": on its reply ticks an agent waits for its robot's own reply (wait),
+    or every TICK is answered at once with the newest samples, marked stale (at_once)."""
     family: Literal["802.15.4", "zigbee"] = "802.15.4"
     """port = "sim": the frame family the simulated radios speak."""
     seed: int = Field(0, ge=0)

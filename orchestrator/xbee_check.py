@@ -1,9 +1,10 @@
 """``hilswarm check`` for experiments with ``xbee://`` links: link URLs and the radio budget.
 
 The budget (:mod:`hilswarm.agents.xbee.budget`) uses each vehicle's pin configuration (every
-output written, every input sampled: the largest TICK it can send) and the ``[gateway]`` baud;
-over 100 % of the tick period is a problem (``check`` and ``run`` refuse the file), over 70 % a
-warning.
+output written, every input sampled: the largest TICK it can send), the ``[gateway]`` baud and
+mode and each agent's ``reply_every``; over 100 % of the tick period is a problem (``check`` and
+``run`` refuse the file), over 70 % a warning. ``reply_every`` belongs to ``xbee://`` agents of
+a gateway in broadcast mode (unicast answers every TICK: there is nothing to decimate).
 """
 
 from __future__ import annotations
@@ -17,6 +18,13 @@ from hilswarm.orchestrator.experiment import ExperimentParts
 from hilswarm.orchestrator.problems import Problem
 
 
+def _is_xbee(link: str) -> bool:
+    try:
+        return link_scheme(link) == "xbee"
+    except LinkUrlError:
+        return False
+
+
 def check_gateway(
     experiment: ExperimentParts,
     vehicles: Mapping[str, Any],
@@ -28,15 +36,36 @@ def check_gateway(
     from hilswarm.agents.xbee.api_frames import FrameFamily  # noqa: PLC0415 - xbee files only
     from hilswarm.agents.xbee.budget import (  # noqa: PLC0415
         RobotTraffic,
+        budget_for,
         budget_messages,
-        gateway_budget,
+        section_size,
         tick_frame_sizes,
     )
     from hilswarm.agents.xbee.config import GatewayConfig, parse_xbee_url  # noqa: PLC0415
 
     robots: list[RobotTraffic] = []
     addresses: dict[int, str] = {}
+    config = experiment.gateway or GatewayConfig()
     for spec in experiment.agents.values():
+        every = getattr(spec, "reply_every", None)
+        xbee = spec.link is not None and _is_xbee(spec.link)
+        if every is not None and not xbee:
+            problems.append(
+                Problem(
+                    experiment.path,
+                    f"agents.{spec.name}.reply_every",
+                    "only for xbee:// links (a gateway in broadcast mode decimates replies)",
+                )
+            )
+        elif every is not None and every > 1 and config.mode != "broadcast":
+            problems.append(
+                Problem(
+                    experiment.path,
+                    f"agents.{spec.name}.reply_every",
+                    f'reply_every = {every} needs [gateway] mode = "broadcast" (by unicast '
+                    "every TICK is answered by its robot)",
+                )
+            )
         if spec.link is None:
             continue
         try:
@@ -61,12 +90,12 @@ def check_gateway(
         if pins is None:
             continue  # its vehicle did not build: reported elsewhere
         request, reply = tick_frame_sizes(pins())
-        robots.append(RobotTraffic(spec.name, request, reply))
+        robots.append(RobotTraffic(spec.name, request, reply, section_size(pins()), every or 1))
     if not robots or experiment.settings is None:
         return
-    config = experiment.gateway or GatewayConfig()
-    budget = gateway_budget(
-        robots,
+    budget = budget_for(
+        [robots[i] for i in sorted(range(len(robots)), key=lambda i: robots[i].name)],
+        mode=config.mode,
         rate_hz=experiment.settings.rate_hz,
         baud=config.baud,
         family=FrameFamily(config.family),

@@ -18,8 +18,12 @@ from pathlib import Path
 from typing import Any
 
 from hilswarm.agents.link.board import PROTOCOL_VERSION, BoardStatus, ErrorCode, PinMode
+from hilswarm.agents.link.broadcast import SectionLayout
 from hilswarm.agents.link.cobs import cobs_encode
 from hilswarm.agents.link.codec import (
+    BcastMsg,
+    BcastReplyMsg,
+    BcastSection,
     ConfigEntry,
     ConfigMsg,
     ConfigReplyMsg,
@@ -56,6 +60,43 @@ BLIMP_CONFIG = (
     ConfigEntry(14, PinMode.ANALOG_IN, 0),
 )
 
+#: A Frisbee's board (protocol 2 broadcast vectors): H-bridge directions on D4/D7/D8/D12, PWM on
+#: D5/D6, battery on A0.
+FRISBEE_CONFIG = (
+    ConfigEntry(4, PinMode.DIGITAL_OUT, 0),
+    ConfigEntry(5, PinMode.PWM, 0),
+    ConfigEntry(6, PinMode.PWM, 0),
+    ConfigEntry(7, PinMode.DIGITAL_OUT, 0),
+    ConfigEntry(8, PinMode.DIGITAL_OUT, 0),
+    ConfigEntry(12, PinMode.DIGITAL_OUT, 0),
+    ConfigEntry(14, PinMode.ANALOG_IN, 0),
+)
+FRISBEE_LAYOUT = SectionLayout.of({e.pin: e.mode for e in FRISBEE_CONFIG})
+#: Three Frisbees' outputs of one tick (broadcast id -> (dout, {pwm pin: duty})).
+FRISBEE_OUTPUTS = {
+    1: (mask_of_pins([4, 8]), {5: 10, 6: 20}),
+    2: (mask_of_pins([7, 12]), {5: 200, 6: 0}),
+    3: (mask_of_pins([4, 7, 8, 12]), {5: 255, 6: 1}),
+}
+
+
+def _bcast_sections(reply_ids: set[int]) -> tuple[BcastSection, ...]:
+    return tuple(
+        BcastSection(i, i in reply_ids, FRISBEE_LAYOUT.encode(dout, pwm))
+        for i, (dout, pwm) in FRISBEE_OUTPUTS.items()
+    )
+
+
+def _bcast_expect(board_id: int) -> dict[str, Any]:
+    """What a Frisbee board with ``board_id`` drives after the broadcast vectors."""
+    dout, pwm = FRISBEE_OUTPUTS[board_id]
+    return {
+        "config": f"config_frisbee_bcast_id_{board_id}",
+        "board_id": board_id,
+        "dout": dout,
+        "pwm": [{"pin": p, "value": v} for p, v in sorted(pwm.items())],
+    }
+
 
 def message_fields(msg: Message) -> dict[str, Any]:
     """Decoded meaning of ``msg`` as plain JSON values (names of enums, lists for tuples)."""
@@ -82,6 +123,7 @@ def message_fields(msg: Message) -> dict[str, Any]:
                 {"pin": e.pin, "mode": PinMode(e.mode).name, "mode_byte": e.mode, "safe": e.safe}
                 for e in msg.entries
             ],
+            "bcast_id": msg.bcast_id,
         }
     elif isinstance(msg, ConfigReplyMsg):
         fields |= {
@@ -96,6 +138,20 @@ def message_fields(msg: Message) -> dict[str, Any]:
             "writes": [{"pin": w.pin, "mode": w.mode.name, "value": w.value} for w in msg.writes],
         }
     elif isinstance(msg, TickReplyMsg):
+        fields |= {
+            "status": msg.status,
+            "status_flags": _flags(msg.status),
+            "board_time_us": msg.board_time_us,
+            "samples": list(msg.samples),
+        }
+    elif isinstance(msg, BcastMsg):
+        fields |= {
+            "sections": [
+                {"board_id": x.board_id, "reply": x.reply, "data_hex": x.data.hex()}
+                for x in msg.sections
+            ]
+        }
+    elif isinstance(msg, BcastReplyMsg):
         fields |= {
             "status": msg.status,
             "status_flags": _flags(msg.status),
@@ -273,6 +329,46 @@ def build_vectors() -> list[dict[str, Any]]:
         _vector("set_id_reply", SetIdReplyMsg(13, 3), "id 3 read back from EEPROM"),
         _vector("set_id_reply_max", SetIdReplyMsg(15, 0xFFFF), "id 65535 read back"),
     ]
+    # Protocol 2: the packed broadcast.
+    for board_id in FRISBEE_OUTPUTS:
+        v.append(
+            _vector(
+                f"config_frisbee_bcast_id_{board_id}",
+                ConfigMsg(30 + board_id, 300, FRISBEE_CONFIG, board_id),
+                f"a Frisbee's CONFIG (D4/D7/D8/D12 out, PWM 5/6, A0 in, watchdog 300 ms) with "
+                f"broadcast id {board_id}: the trailing byte of protocol 2",
+            )
+        )
+    bcast = _vector(
+        "bcast_three_frisbees",
+        BcastMsg(40, _bcast_sections({2})),
+        "BCAST with three Frisbee sections (ids 1, 2, 3; 3 B of data each: levels of "
+        "D4/D7/D8/D12, PWM5, PWM6); only id 2 is asked to reply",
+    )
+    bcast["expect"] = [_bcast_expect(i) for i in FRISBEE_OUTPUTS]
+    v.append(bcast)
+    silent = _vector(
+        "bcast_no_reply",
+        BcastMsg(41, _bcast_sections(set())),
+        "the same sections, nobody asked to reply: every board applies its own, none answers",
+    )
+    silent["expect"] = [_bcast_expect(i) for i in FRISBEE_OUTPUTS]
+    v.append(silent)
+    v.append(
+        _vector(
+            "bcast_reply",
+            BcastReplyMsg(40, 0, 987654, (612,)),
+            "board 2's reply to bcast_three_frisbees: status 0, board time, A0 = 612 counts",
+        )
+    )
+    v.append(
+        _vector(
+            "tick_reply_stale",
+            TickReplyMsg(42, BoardStatus.STALE, 987654, (612,)),
+            "a TICK_REPLY a gateway answers itself (protocol 2): the robot's last samples and "
+            "board time, marked STALE (a board never sets it)",
+        )
+    )
     for code in ErrorCode:
         detail = _ERROR_DETAIL[code]
         seq = 0 if code == ErrorCode.FRAME_TOO_LONG else 20 + int(code)

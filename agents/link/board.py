@@ -27,7 +27,11 @@ from types import TracebackType
 from typing import Self
 
 #: Protocol version spoken by this host code (separate from any firmware version).
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
+
+#: Protocol versions this host talks to: version 2 only adds the packed broadcast (BCAST, the
+#: CONFIG's broadcast id, the STALE flag), so a version-1 board works for everything else.
+SUPPORTED_PROTOCOL_VERSIONS = frozenset({1, 2})
 
 #: Number of pins addressed by the protocol on ATmega328P boards (0-13 digital, 14-19 = A0-A5).
 PIN_COUNT = 20
@@ -91,6 +95,7 @@ class BoardStatus(enum.IntFlag):
     RX_ERRORS = 0x08  # frames were dropped (CRC/framing) since the last reply
     RESET = 0x10  # the board (re)booted since the last HELLO
     HW_WATCHDOG_RESET = 0x20  # the last reset was caused by the AVR hardware watchdog
+    STALE = 0x40  # (protocol 2) never set by a board: a gateway repeated the last samples
 
 
 class ErrorCode(enum.IntEnum):
@@ -137,7 +142,7 @@ class BoardInfo:
     """What the HELLO handshake reports.
 
     Attributes:
-        protocol_version: wire protocol version (must equal :data:`PROTOCOL_VERSION`).
+        protocol_version: wire protocol version (one of :data:`SUPPORTED_PROTOCOL_VERSIONS`).
         firmware_version: firmware version as ``(major, minor)``.
         board_id: board identity stored in EEPROM (0-65535).
         capabilities: per-pin capability flags, index = pin number.

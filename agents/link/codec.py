@@ -73,18 +73,25 @@ class MsgType(enum.IntEnum):
     TICK = 0x03
     ESTOP = 0x04
     SET_ID = 0x05
+    BCAST = 0x06  # protocol 2: every robot's outputs in one broadcast frame
     ERROR = 0x7F
     HELLO_REPLY = 0x81
     CONFIG_REPLY = 0x82
     TICK_REPLY = 0x83
     ESTOP_REPLY = 0x84
     SET_ID_REPLY = 0x85
+    BCAST_REPLY = 0x86
 
 
 #: Request types a board accepts.
 REQUEST_TYPES = frozenset(
-    {MsgType.HELLO, MsgType.CONFIG, MsgType.TICK, MsgType.ESTOP, MsgType.SET_ID}
+    {MsgType.HELLO, MsgType.CONFIG, MsgType.TICK, MsgType.ESTOP, MsgType.SET_ID, MsgType.BCAST}
 )
+#: BCAST section header: bit 0x80 asks the board for a BCAST_REPLY; 0x40 is reserved (0); the
+#: low six bits are the length of the section's data [B].
+BCAST_REPLY_FLAG = 0x80
+BCAST_RESERVED_FLAG = 0x40
+BCAST_LENGTH_MASK = 0x3F
 
 
 def _u8(value: int, what: str, detail: int) -> bytes:
@@ -198,12 +205,14 @@ class ConfigEntry:
 
 @dataclass(frozen=True, slots=True)
 class ConfigMsg:
-    """CONFIG request: link watchdog [ms] (0 = off) and the whole pin configuration."""
+    """CONFIG request: link watchdog [ms] (0 = off), the whole pin configuration and (protocol
+    2) the board's broadcast id (1-255; 0 = not in broadcasts, and then not on the wire)."""
 
     msg_type: ClassVar[MsgType] = MsgType.CONFIG
     seq: int
     watchdog_ms: int
     entries: tuple[ConfigEntry, ...] = ()
+    bcast_id: int = 0
 
     def body(self) -> bytes:
         """Encoded body."""
@@ -212,6 +221,8 @@ class ConfigMsg:
             out += _u8(e.pin, "pin", e.pin)
             out += _u8(int(e.mode), f"mode of pin {e.pin}", e.pin)
             out += _u16(e.safe, f"safe value of pin {e.pin}", e.pin)
+        if self.bcast_id:
+            out += _u8(self.bcast_id, "bcast_id", self.msg_type)
         return bytes(out)
 
 
@@ -353,6 +364,57 @@ class SetIdReplyMsg:
 
 
 @dataclass(frozen=True, slots=True)
+class BcastSection:
+    """One robot's part of a BCAST: its broadcast id, whether it answers, its section data
+    (the layout of :class:`~.broadcast.SectionLayout`: levels, then PWM/servo values)."""
+
+    board_id: int
+    reply: bool
+    data: bytes
+
+    def encode(self) -> bytes:
+        """``id:u8 hdr:u8 data`` (hdr = length | 0x80 when a reply is asked for)."""
+        if len(self.data) > BCAST_LENGTH_MASK:
+            raise WireFormatError(
+                f"BCAST section of board {self.board_id}: {len(self.data)} B of data, at most "
+                f"{BCAST_LENGTH_MASK}",
+                code=ErrorCode.BAD_LENGTH,
+                detail=MsgType.BCAST,
+            )
+        hdr = len(self.data) | (BCAST_REPLY_FLAG if self.reply else 0)
+        return _u8(self.board_id, "board id", MsgType.BCAST) + bytes((hdr,)) + self.data
+
+
+@dataclass(frozen=True, slots=True)
+class BcastMsg:
+    """BCAST request (protocol 2, to every board at once): one section per robot."""
+
+    msg_type: ClassVar[MsgType] = MsgType.BCAST
+    seq: int
+    sections: tuple[BcastSection, ...] = ()
+
+    def body(self) -> bytes:
+        """Encoded body: the sections back to back."""
+        return b"".join(s.encode() for s in self.sections)
+
+
+@dataclass(frozen=True, slots=True)
+class BcastReplyMsg:
+    """BCAST reply of the boards whose section asked for one: status, board clock [µs] and a
+    sample of every input pin, ascending (the layout of a TICK reply)."""
+
+    msg_type: ClassVar[MsgType] = MsgType.BCAST_REPLY
+    seq: int
+    status: int
+    board_time_us: int
+    samples: tuple[int, ...] = ()
+
+    def body(self) -> bytes:
+        """Encoded body."""
+        return TickReplyMsg(self.seq, self.status, self.board_time_us, self.samples).body()
+
+
+@dataclass(frozen=True, slots=True)
 class ErrorMsg:
     """ERROR (board to host): ``code`` (ErrorCode) and ``detail`` (pin or request type)."""
 
@@ -378,6 +440,8 @@ Message = (
     | EstopReplyMsg
     | SetIdMsg
     | SetIdReplyMsg
+    | BcastMsg
+    | BcastReplyMsg
     | ErrorMsg
 )
 
@@ -488,13 +552,41 @@ def _expect_len(msg_type: int, body: bytes, size: int) -> None:
 
 
 def _parse_config(seq: int, body: bytes) -> ConfigMsg:
-    if len(body) < 2 or (len(body) - 2) % 4:
-        raise _bad_length(MsgType.CONFIG, "2 + 4n (watchdog_ms, then pin/mode/safe)", len(body))
+    if len(body) < 2 or (len(body) - 2) % 4 > 1:
+        raise _bad_length(
+            MsgType.CONFIG, "2 + 4n [+ 1] (watchdog_ms, pin/mode/safe, bcast_id)", len(body)
+        )
+    end = len(body) - (len(body) - 2) % 4
     entries = tuple(
         ConfigEntry(body[i], body[i + 1], int.from_bytes(body[i + 2 : i + 4], "little"))
-        for i in range(2, len(body), 4)
+        for i in range(2, end, 4)
     )
-    return ConfigMsg(seq, int.from_bytes(body[0:2], "little"), entries)
+    bcast_id = body[end] if end < len(body) else 0
+    return ConfigMsg(seq, int.from_bytes(body[0:2], "little"), entries, bcast_id)
+
+
+def parse_bcast_body(seq: int, body: bytes) -> BcastMsg:
+    """Decode a BCAST body into its sections.
+
+    Raises:
+        WireFormatError: BAD_LENGTH (a section runs past the body, or a reserved header bit).
+    """
+    sections: list[BcastSection] = []
+    index = 0
+    while index < len(body):
+        if index + 2 > len(body) or body[index + 1] & BCAST_RESERVED_FLAG:
+            raise _bad_length(MsgType.BCAST, "sections of id:u8 hdr:u8 data", len(body))
+        hdr = body[index + 1]
+        end = index + 2 + (hdr & BCAST_LENGTH_MASK)
+        if end > len(body):
+            raise _bad_length(
+                MsgType.BCAST, f"{end - index - 2} data bytes in a section", len(body)
+            )
+        sections.append(
+            BcastSection(body[index], bool(hdr & BCAST_REPLY_FLAG), bytes(body[index + 2 : end]))
+        )
+        index = end
+    return BcastMsg(seq, tuple(sections))
 
 
 def parse_tick_body(seq: int, body: bytes, modes: Sequence[int]) -> TickMsg:
@@ -565,6 +657,8 @@ def parse_payload(payload: bytes, *, modes: Sequence[int] | None = None) -> Mess
     if t == MsgType.SET_ID:
         _expect_len(t, body, 2)
         return SetIdMsg(seq, int.from_bytes(body, "little"))
+    if t == MsgType.BCAST:
+        return parse_bcast_body(seq, body)
     return _parse_reply(t, seq, body)
 
 
@@ -600,11 +694,12 @@ def _parse_reply(t: MsgType, seq: int, body: bytes) -> Message:
     if t == MsgType.CONFIG_REPLY:
         _expect_len(t, body, 2)
         return ConfigReplyMsg(seq, body[0], body[1])
-    if t == MsgType.TICK_REPLY:
+    if t in (MsgType.TICK_REPLY, MsgType.BCAST_REPLY):
         if len(body) < 5 or (len(body) - 5) % 2:
             raise _bad_length(t, "5 + 2n (status, board_time_us, samples)", len(body))
         samples = tuple(int.from_bytes(body[i : i + 2], "little") for i in range(5, len(body), 2))
-        return TickReplyMsg(seq, body[0], int.from_bytes(body[1:5], "little"), samples)
+        cls = TickReplyMsg if t == MsgType.TICK_REPLY else BcastReplyMsg
+        return cls(seq, body[0], int.from_bytes(body[1:5], "little"), samples)
     if t == MsgType.ESTOP_REPLY:
         _expect_len(t, body, 1)
         return EstopReplyMsg(seq, body[0])

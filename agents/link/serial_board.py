@@ -20,9 +20,9 @@ Reliability:
   latched across reconnections; :meth:`SerialBoard.abort` makes a blocked request or
   reconnection give up within one poll period. Everything else is for one thread at a time.
 * **Handshake.** HELLO is repeated for up to ``open_timeout_s`` (an Arduino resets when its port
-  is opened and its bootloader runs first); the protocol version must be
-  :data:`~.board.PROTOCOL_VERSION` and, if ``board_id`` is given, the board's id must match,
-  else :class:`ProtocolError` names both.
+  is opened and its bootloader runs first); the protocol version must be one of
+  :data:`~.board.SUPPORTED_PROTOCOL_VERSIONS` and, if ``board_id`` is given, the board's id
+  must match, else :class:`ProtocolError` names both.
 
 Speed: a TICK round trip is the protocol's hot path. Its request is packed by a
 :class:`~.codec.TickLayout` cached per (written pins, read pins), the bytes go straight through
@@ -58,7 +58,7 @@ from hilswarm.agents.errors import (
     WireFormatError,
 )
 from hilswarm.agents.link.board import (
-    PROTOCOL_VERSION,
+    SUPPORTED_PROTOCOL_VERSIONS,
     Board,
     BoardInfo,
     BoardStatus,
@@ -119,6 +119,9 @@ _READ_CHUNK = 4096
 _PosixSerial: type | None = getattr(getattr(serial, "serialposix", None), "Serial", None)
 
 
+_STALE = int(BoardStatus.STALE)
+
+
 class SerialPort(Protocol):
     """The part of :class:`serial.SerialBase` the board uses."""
 
@@ -166,7 +169,8 @@ class LinkStats:
 
     requests: int = 0
     retries: int = 0
-    stale_replies: int = 0
+    stale_replies: int = 0  # replies with an old seq, discarded
+    stale_samples: int = 0  # TICK replies marked STALE (a gateway's repeat of older samples)
     malformed_replies: int = 0
     reconnections: int = 0
     bytes_sent: int = 0
@@ -233,6 +237,9 @@ class SerialBoard(Board):
         self.link_timeout_s = reconnect_timeout_s
         self.baudrate = baudrate
         self.expected_board_id = board_id
+        #: Broadcast id sent with every CONFIG (protocol 2; 0 = none, a protocol-1 CONFIG). A
+        #: gateway in broadcast mode adds it itself; set it to send packed broadcasts directly.
+        self.bcast_id = 0
         self.timeout_s = timeout_s
         self.retries = retries
         self.open_timeout_s = open_timeout_s
@@ -460,10 +467,11 @@ class SerialBoard(Board):
             raise self._request_error(reply, HelloMsg.msg_type)
         if not isinstance(reply, HelloReplyMsg):
             raise ProtocolError(f"{self.url}: HELLO answered with {reply!r}")
-        if reply.protocol_version != PROTOCOL_VERSION:
+        if reply.protocol_version not in SUPPORTED_PROTOCOL_VERSIONS:
             raise ProtocolError(
                 f"{self.url}: board speaks protocol version {reply.protocol_version}, this host "
-                f"speaks version {PROTOCOL_VERSION} (update the firmware or hilswarm)"
+                f"speaks versions {sorted(SUPPORTED_PROTOCOL_VERSIONS)} (update the firmware "
+                "or hilswarm)"
             )
         if self.expected_board_id is not None and reply.board_id != self.expected_board_id:
             raise ProtocolError(
@@ -641,7 +649,7 @@ class SerialBoard(Board):
     def _config_payload(self, pins: Sequence[PinConfig], watchdog_ms: int) -> bytes:
         entries = tuple(ConfigEntry(p.pin, int(p.mode), p.safe_value) for p in pins)
         try:
-            return encode_payload(ConfigMsg(self._next_seq(), watchdog_ms, entries))
+            return encode_payload(ConfigMsg(self._next_seq(), watchdog_ms, entries, self.bcast_id))
         except WireFormatError as exc:
             raise BoardRequestError(
                 f"{self.url}: CONFIG cannot be encoded: {exc}", code=exc.code, pin=None
@@ -768,6 +776,8 @@ class SerialBoard(Board):
             )
         status = self._status(reply.status)
         self._note_status(status)
+        if reply.status & _STALE:
+            self.stats.stale_samples += 1
         return TickReply(
             reply.seq,
             status,

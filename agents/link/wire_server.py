@@ -37,8 +37,10 @@ from hilswarm.agents.link.board import (
     PinConfig,
     PinMode,
 )
+from hilswarm.agents.link.broadcast import SectionLayout
 from hilswarm.agents.link.cobs import cobs_encode
 from hilswarm.agents.link.codec import (
+    BcastReplyMsg,
     ConfigMsg,
     ConfigReplyMsg,
     DropReason,
@@ -57,6 +59,7 @@ from hilswarm.agents.link.codec import (
     check_config,
     check_tick,
     encode_message,
+    parse_bcast_body,
     parse_payload,
     pins_of_mask,
 )
@@ -119,6 +122,8 @@ class WireServer:
         self._reset = True
         self._estopped = False
         self._modes: list[int] | None = None
+        self._layout: SectionLayout | None = None
+        self._bcast_id = 0
         self._info: BoardInfo | None = None
         self._board_id: int | None = None
 
@@ -136,6 +141,8 @@ class WireServer:
         self._reset = True
         self._estopped = False
         self._modes = None
+        self._layout = None
+        self._bcast_id = 0
 
     # ------------------------------------------------------------------ bytes in, bytes out
     def handle_bytes(self, data: bytes) -> bytes:
@@ -183,6 +190,9 @@ class WireServer:
             self.faults.drop_requests -= 1
             _log.info("wire server: ignoring request %s (fault injection)", payload.hex())
             return b""
+        if payload[0] == MsgType.BCAST:
+            reply = self._bcast(payload)
+            return b"" if reply is None else self._send(reply)
         self.stats.requests += 1
         seq = payload[1]
         try:
@@ -272,6 +282,8 @@ class WireServer:
         for e in msg.entries:
             modes[e.pin] = e.mode
         self._modes = modes
+        self._layout = SectionLayout.of({e.pin: e.mode for e in msg.entries})
+        self._bcast_id = msg.bcast_id
         self._estopped = False
         return ConfigReplyMsg(msg.seq, self._status(events | self._board_flags()), len(msg.entries))
 
@@ -296,6 +308,35 @@ class WireServer:
         time_us = round(reply.board_time_s * 1e6) % (1 << 32)
         samples = tuple(int(reply.samples[pin]) for pin in reads)
         return TickReplyMsg(msg.seq, self._status(reply.status), time_us, samples)
+
+    def _bcast(self, payload: bytes) -> BcastReplyMsg | None:
+        """A BCAST (protocol 2): apply our section, answer only if it asks; never an ERROR
+        (every board hears a broadcast). A malformed frame or section is dropped and counted
+        (RX_ERRORS), as the firmware does."""
+        layout = self._layout
+        if layout is None or self._bcast_id == 0:
+            return None
+        try:
+            msg = parse_bcast_body(payload[1], payload[2:])
+            section = next((s for s in msg.sections if s.board_id == self._bcast_id), None)
+            if section is None:
+                return None
+            writes = layout.decode(section.data)
+        except WireFormatError as exc:
+            _log.debug("wire server: BCAST dropped: %s", exc)
+            self.stats.dropped_frames += 1
+            self._rx_errors = True
+            return None
+        self.stats.requests += 1
+        self.stats.by_type["BCAST"] = self.stats.by_type.get("BCAST", 0) + 1
+        if self._info is None:
+            self._info = self.board.open()
+        reply = self.board.exchange(writes, list(layout.input_pins))
+        if not section.reply:
+            return None
+        time_us = round(reply.board_time_s * 1e6) % (1 << 32)
+        samples = tuple(int(reply.samples[pin]) for pin in layout.input_pins)
+        return BcastReplyMsg(msg.seq, self._status(reply.status), time_us, samples)
 
 
 # --------------------------------------------------------------------------- transports

@@ -1,7 +1,7 @@
 """The radio budget of one XBee gateway: host UART bytes and air time per tick. Pure.
 
-Per tick and per robot, unicast (one TICK request, one reply), with the frame sizes of
-:mod:`.api_frames` and the air model of :mod:`.air`:
+**Unicast** (``[gateway] mode = "unicast"``): per tick and per robot one TICK request and one
+reply, with the frame sizes of :mod:`.api_frames` and the air model of :mod:`.air`:
 
 * host UART out (host -> coordinator): a TX Request around the TICK frame (802.15.4: 15 B +
   payload; ZigBee/DigiMesh: 18 B + payload);
@@ -10,19 +10,28 @@ Per tick and per robot, unicast (one TICK request, one reply), with the frame si
 * air (one channel, both directions share it): an acknowledged unicast for the request and one
   for the reply, each at its mean time (:meth:`~.air.AirParams.mean_unicast_s`).
 
+**Packed broadcast** (``mode = "broadcast"``, :mod:`.packer`): per tick the robots' sections
+(2 B + levels + one byte per PWM duty, two per servo) packed into as few BCAST frames as the
+96-byte payload limit needs, each one TX Request to the broadcast address (no ACK, no retry, no
+TX Status), plus the replies of the tick: robot i answers when ``(k + i) % reply_every == 0``;
+the budget takes the tick with the most replies (their RX Packets and acknowledged unicasts).
+
 A budget over 100 % of the tick period fails ``hilswarm check`` (the ticks cannot all go
 through); over 70 % it warns (no room for retries). Each message says what overflows, by how
-much, and what would fit: a lower rate, fewer robots, a faster baud.
+much, and what would fit: a lower rate, fewer robots, a faster baud, the packed broadcast or a
+larger ``reply_every``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from hilswarm.agents.link.board import PinConfig, PinMode
+from hilswarm.agents.link.broadcast import SectionLayout
 from hilswarm.agents.link.codec import (
+    MAX_PAYLOAD,
     PinWrite,
     TickMsg,
     TickReplyMsg,
@@ -63,6 +72,12 @@ def tick_frame_sizes(pins: Sequence[PinConfig]) -> tuple[int, int]:
     return len(request), len(reply)
 
 
+def section_size(pins: Sequence[PinConfig]) -> int:
+    """Data bytes of the BCAST section of a board configured with ``pins`` (its reply, a
+    sample of every input, is as long as :func:`tick_frame_sizes`' reply)."""
+    return SectionLayout.of({p.pin: int(p.mode) for p in pins}).length
+
+
 @dataclass(frozen=True)
 class RobotTraffic:
     """What one robot exchanges per tick.
@@ -70,12 +85,16 @@ class RobotTraffic:
     Attributes:
         name: agent name.
         request_bytes: TICK frame [B].
-        reply_bytes: reply frame [B].
+        reply_bytes: reply frame [B] (a TICK's or a BCAST's: every input sampled).
+        section_bytes: data of its BCAST section [B] (broadcast mode).
+        reply_every: broadcast mode: it answers every ``reply_every``-th tick.
     """
 
     name: str
     request_bytes: int
     reply_bytes: int
+    section_bytes: int = 0
+    reply_every: int = 1
 
 
 @dataclass(frozen=True)
@@ -91,6 +110,9 @@ class Budget:
         uart_in_s: coordinator -> host UART time per tick [s].
         air_request_s: air time of the requests per tick [s].
         air_reply_s: air time of the replies per tick [s].
+        mode: ``"unicast"`` or ``"broadcast"``.
+        frames: broadcast mode: BCAST frames per tick.
+        replies: broadcast mode: replies in the tick with the most.
     """
 
     rate_hz: float
@@ -101,6 +123,9 @@ class Budget:
     uart_in_s: float
     air_request_s: float
     air_reply_s: float
+    mode: str = "unicast"
+    frames: int = 0
+    replies: int = 0
 
     @property
     def dt(self) -> float:
@@ -146,7 +171,103 @@ def gateway_budget(
     )
 
 
-def _advice(budget: Budget, resource: str, fraction: float) -> str:
+def bcast_frame_sizes(section_bytes: Sequence[int]) -> list[int]:
+    """Wire bytes of the BCAST frames that carry sections of ``section_bytes`` data each, packed
+    in order into payloads of at most 96 B (type, seq, then id, hdr and data per section; COBS
+    adds one byte below 254, the CRC two, the delimiter one)."""
+    frames: list[int] = []
+    size = 2
+    for data in section_bytes:
+        need = 2 + data
+        if size > 2 and size + need > MAX_PAYLOAD:
+            frames.append(size + 4)
+            size = 2
+        size += need
+    if size > 2:
+        frames.append(size + 4)
+    return frames
+
+
+def _reply_ticks(robots: Sequence[RobotTraffic]) -> list[list[RobotTraffic]]:
+    """Who answers on each tick of one round-robin cycle (robot i when (k + i) % m == 0); at
+    most 1000 ticks of it (the least common multiple of the m can be long)."""
+    cycle = min(math.lcm(*(max(1, r.reply_every) for r in robots)) if robots else 1, 1000)
+    return [
+        [r for i, r in enumerate(robots) if (k + i) % max(1, r.reply_every) == 0]
+        for k in range(cycle)
+    ]
+
+
+def broadcast_budget(
+    robots: Sequence[RobotTraffic],
+    *,
+    rate_hz: float,
+    baud: int = 115200,
+    family: FrameFamily = FrameFamily.IEEE_802_15_4,
+    air: AirParams | None = None,
+) -> Budget:
+    """The packed-broadcast budget of ``robots`` (see the module docstring): the tick with the
+    most replies."""
+    air = air or AirParams()
+    tx, rx, _status = FRAME_BYTES[family]
+    frames = bcast_frame_sizes([r.section_bytes for r in robots])
+    ticks = _reply_ticks(robots)
+    air_reply = max(sum(air.mean_unicast_s(r.reply_bytes) for r in t) for t in ticks)
+    in_bytes = max(sum(rx + r.reply_bytes for r in t) for t in ticks)
+    return Budget(
+        rate_hz,
+        baud,
+        family,
+        tuple(robots),
+        uart_s(sum(tx + f for f in frames), baud),
+        uart_s(in_bytes, baud),
+        sum(air.mean_broadcast_s(f) for f in frames),
+        air_reply,
+        "broadcast",
+        len(frames),
+        max(len(t) for t in ticks),
+    )
+
+
+def budget_for(
+    robots: Sequence[RobotTraffic],
+    *,
+    mode: str,
+    rate_hz: float,
+    baud: int = 115200,
+    family: FrameFamily = FrameFamily.IEEE_802_15_4,
+) -> Budget:
+    """:func:`gateway_budget` or :func:`broadcast_budget`, by ``mode``."""
+    build = broadcast_budget if mode == "broadcast" else gateway_budget
+    return build(robots, rate_hz=rate_hz, baud=baud, family=family)
+
+
+def _worst(budget: Budget) -> float:
+    return max(budget.fractions().values())
+
+
+def _broadcast_advice(budget: Budget, limit: float) -> str | None:
+    """The packed broadcast (or a larger ``reply_every``) that brings ``budget`` under
+    ``limit``, with its figure; ``None`` if none does."""
+    current = min((r.reply_every for r in budget.robots), default=1)
+    for m in (1, 2, 3, 5, 10, 20):
+        if budget.mode == "broadcast" and m <= current:
+            continue
+        robots = [replace(r, reply_every=max(m, r.reply_every)) for r in budget.robots]
+        other = broadcast_budget(
+            robots, rate_hz=budget.rate_hz, baud=budget.baud, family=budget.family
+        )
+        if _worst(other) <= limit:
+            what = (
+                '[gateway] mode = "broadcast"'
+                if budget.mode != "broadcast"
+                else "a larger reply_every"
+            )
+            return f"{what} with reply_every = {m} ({_worst(other):.0%} of the tick)"
+    return None
+
+
+def _advice(budget: Budget, resource: str, fraction: float, limit: float = 1.0) -> str:
     n = len(budget.robots)
     need_s = fraction * budget.dt
     fitting_rate = budget.rate_hz / fraction
@@ -164,6 +285,9 @@ def _advice(budget: Budget, resource: str, fraction: float) -> str:
         )
     else:
         parts.append("a second coordinator on another channel")
+    packed = _broadcast_advice(budget, limit)
+    if packed is not None:
+        parts.insert(0, packed)
     parts.append("fewer pins per TICK (smaller frames)")
     return "; ".join(parts)
 
@@ -179,7 +303,7 @@ def budget_messages(budget: Budget) -> tuple[list[str], list[str]]:
         used_ms = fraction * budget.dt * 1e3
         head = (
             f"XBee {resource}: {used_ms:.1f} ms per tick of {budget.dt * 1e3:.1f} ms "
-            f"({fraction:.0%}) for {n} robots by unicast at {budget.rate_hz:g} Hz, "
+            f"({fraction:.0%}) for {n} robots {_how(budget)} at {budget.rate_hz:g} Hz, "
             f"{budget.baud} baud"
         )
         if fraction > FAIL_FRACTION:
@@ -189,6 +313,17 @@ def budget_messages(budget: Budget) -> tuple[list[str], list[str]]:
         else:
             warnings.append(
                 f"{head}: little room for retries; to fit below {WARN_FRACTION:.0%}: "
-                f"{_advice(budget, resource, fraction / WARN_FRACTION)}"
+                f"{_advice(budget, resource, fraction / WARN_FRACTION, WARN_FRACTION)}"
             )
     return errors, warnings
+
+
+def _how(budget: Budget) -> str:
+    if budget.mode != "broadcast":
+        return "by unicast"
+    every = sorted({r.reply_every for r in budget.robots})
+    m = str(every[0]) if len(every) == 1 else f"{every[0]}-{every[-1]}"
+    return (
+        f"by packed broadcast ({budget.frames} frame(s), {budget.replies} replies in the "
+        f"busiest tick, reply_every {m})"
+    )

@@ -6,6 +6,9 @@
     port = "/dev/ttyUSB0"     # any pyserial URL; "sim" = a simulated coordinator and air
     baud = 115200             # host UART rate of the coordinator [baud]
     api_mode = 1              # 1 = API, 2 = API with escaping
+    mode = "unicast"          # or "broadcast": one packed BCAST per tick (protocol 2 robots)
+    answer = "wait"           # broadcast: "wait" for a robot's own reply on its reply ticks,
+                              # or "at_once" (samples always one tick old or more, STALE)
     # only for port = "sim":
     family = "802.15.4"       # or "zigbee": the frame family the simulated radios speak
     seed = 0                  # seed of the simulated air (backoffs, losses)
@@ -31,6 +34,8 @@ from hilswarm.agents.xbee.sim_coordinator import BAUD_CODES
 
 #: ``port`` value that asks for the simulated coordinator.
 SIM_PORT = "sim"
+#: ``mode`` values: one request and one reply per robot and tick, or the packed broadcast.
+MODES = ("unicast", "broadcast")
 _ADDRESS_RE = re.compile(r"^(0x)?[0-9A-Fa-f]{1,16}$")
 
 
@@ -46,6 +51,10 @@ class GatewayConfig:
         port: pyserial URL or device of the coordinator; ``"sim"`` for the simulated one.
         baud: host UART rate [baud].
         api_mode: 1 (API) or 2 (API with escaping).
+        mode: ``"unicast"`` (a TICK and its reply per robot and tick) or ``"broadcast"`` (the
+            agents' TICKs of a tick packed into one BCAST, replies decimated; docs/xbee.md).
+        answer: broadcast mode: ``"wait"`` (on its reply ticks an agent gets its robot's own
+            reply) or ``"at_once"`` (every TICK answered at once, samples marked STALE).
         family: frame family of the simulated radios (``port = "sim"`` only).
         seed: seed of the simulated air.
         loss: loss probability of each frame on every simulated link.
@@ -54,6 +63,8 @@ class GatewayConfig:
     port: str = SIM_PORT
     baud: int = 115200
     api_mode: int = 1
+    mode: str = "unicast"
+    answer: str = "wait"
     family: str = FrameFamily.IEEE_802_15_4.value
     seed: int = 0
     loss: float = 0.0
@@ -70,6 +81,12 @@ class GatewayConfig:
             raise GatewayConfigError(
                 f"[gateway] api_mode = {self.api_mode!r}: use 1 (API) or 2 (API, escaped)"
             )
+        if self.mode not in MODES:
+            raise GatewayConfigError(
+                f"[gateway] mode = {self.mode!r}: use {' or '.join(repr(m) for m in MODES)}"
+            )
+        if self.answer not in ("wait", "at_once"):
+            raise GatewayConfigError(f"[gateway] answer = {self.answer!r}: use 'wait' or 'at_once'")
         if self.family not in {f.value for f in FrameFamily}:
             raise GatewayConfigError(
                 f"[gateway] family = {self.family!r}: use "
@@ -87,7 +104,7 @@ class GatewayConfig:
     def from_table(cls, table: Mapping[str, Any] | None) -> GatewayConfig:
         """Build from an experiment file's ``[gateway]`` table (``None``: the defaults)."""
         table = dict(table or {})
-        known = {"port", "baud", "api_mode", "family", "seed", "loss"}
+        known = {"port", "baud", "api_mode", "mode", "answer", "family", "seed", "loss"}
         unknown = sorted(set(table) - known)
         if unknown:
             raise GatewayConfigError(

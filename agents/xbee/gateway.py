@@ -45,6 +45,7 @@ from hilswarm.agents import bus
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.xbee.air import AirParams, uart_s
 from hilswarm.agents.xbee.api_frames import (
+    BROADCAST_64,
     ApiFrame,
     ApiFrameDecoder,
     ApiMode,
@@ -60,6 +61,7 @@ from hilswarm.agents.xbee.api_frames import (
     encode_frame,
 )
 from hilswarm.agents.xbee.config import GatewayConfig, format_address
+from hilswarm.agents.xbee.packer import Action, Broadcast, BroadcastPacker, ToAgent, Unicast
 
 _log = logging.getLogger(__name__)
 
@@ -95,6 +97,8 @@ class RobotStats:
     tx_failures: int = 0
     retries: int = 0
     rssi_dbm: int | None = None
+    sections: int = 0  # broadcast mode: BCAST sections sent to it
+    stale_replies: int = 0  # broadcast mode: TICK_REPLYs the gateway answered itself
 
 
 @dataclass
@@ -106,6 +110,8 @@ class GatewayStats:
     air_s: float = 0.0  # estimated air time of every packet sent and received [s]
     reconnections: int = 0
     dropped_frames: int = 0
+    broadcast_frames: int = 0  # BCAST frames sent (broadcast mode)
+    broadcast_bytes: int = 0
     robots: dict[str, RobotStats] = field(default_factory=dict)
 
 
@@ -121,6 +127,8 @@ class Gateway:
         port_url: what to open instead of ``config.port`` (the simulated coordinator's path).
         stats_period_s: period of ``gateway/stats`` [s].
         clock: monotonic clock [s].
+        reply_every: broadcast mode: agent name -> m (its robot answers every m-th tick).
+        rate_hz: broadcast mode: the experiment's tick rate [Hz] (how long a round gathers).
     """
 
     def __init__(
@@ -133,6 +141,8 @@ class Gateway:
         port_url: str | None = None,
         stats_period_s: float = 0.5,
         clock: Callable[[], float] = time.monotonic,
+        reply_every: Mapping[str, int] | None = None,
+        rate_hz: float = 20.0,
     ) -> None:
         self.config = config
         self.keys = keys
@@ -149,7 +159,7 @@ class Gateway:
         self._decoder = ApiFrameDecoder(self._mode)
         self._port: serial.SerialBase | None = None
         self._port_lock = threading.Lock()
-        self._outbox: queue.SimpleQueue[tuple[str, bytes] | None] = queue.SimpleQueue()
+        self._outbox: queue.SimpleQueue[tuple[str, bytes] | tuple[()] | None] = queue.SimpleQueue()
         self._frame_id = 0
         self._pending: dict[int, str] = {}  # frame id -> robot name
         self._at_answers: queue.SimpleQueue[AtResponse] = queue.SimpleQueue()
@@ -160,6 +170,18 @@ class Gateway:
         self._air = AirParams()
         self._max_payload = self._air.max_payload
         self._ticks: queue.SimpleQueue[tuple[int, float]] = queue.SimpleQueue()
+        #: Broadcast mode (``[gateway] mode = "broadcast"``): the TICK packer, else ``None``.
+        self.packer = (
+            BroadcastPacker(
+                sorted(self.robots),
+                reply_every=reply_every,
+                period_s=1.0 / rate_hz,
+                answer=config.answer,
+            )
+            if config.mode == "broadcast"
+            else None
+        )
+        self._packer_lock = threading.Lock()
         self._last_tick = (0, 0.0)
 
     # ------------------------------------------------------------------ life cycle
@@ -329,31 +351,86 @@ class Gateway:
 
     def _write_loop(self) -> None:
         while not self._stop.is_set():
-            item = self._outbox.get()
+            packer = self.packer
+            due = None if packer is None else packer.due(self.clock())
+            try:
+                item = (
+                    self._outbox.get()
+                    if due is None
+                    else self._outbox.get(timeout=max(0.0, due - self.clock()))
+                )
+            except queue.Empty:
+                item = ()  # a round's gathering time is over
             if item is None:
                 return
+            if packer is not None:
+                with self._packer_lock:
+                    actions = (
+                        packer.from_agent(item[0], item[1], self.clock())
+                        if item
+                        else packer.poll(self.clock())
+                    )
+                self._act(actions)
+                continue
             if not self.connected.is_set():
                 continue  # coordinator away: the frame is lost, the agent's board retries
-            name, data = item
-            address = self.robots[name]
-            robot = self.stats.robots[name]
-            for start in range(0, len(data), self._max_payload):
-                chunk = data[start : start + self._max_payload]
-                frame_id = self._next_frame_id()
-                self._pending[frame_id] = name
-                frame: ApiFrame = (
-                    Tx64Request(frame_id, address, chunk)
-                    if self.family == FrameFamily.IEEE_802_15_4
-                    else TransmitRequest(frame_id, address, chunk)
-                )
-                try:
-                    self._write_frame(frame)
-                except (serial.SerialException, OSError) as exc:
-                    _log.debug("gateway: write failed (%s); the reader reconnects", exc)
-                    break
-                robot.tx_frames += 1
-                robot.tx_bytes += len(chunk)
-                self.stats.air_s += self._air.mean_unicast_s(len(chunk))
+            self._send_unicast(*item)
+
+    def _act(self, actions: list[Action]) -> None:
+        """Carry out the packer's actions (writer or reader thread)."""
+        for action in actions:
+            if isinstance(action, ToAgent) and action.stale and not self.connected.is_set():
+                continue  # coordinator away: no answers from old samples; the boards time out
+            if isinstance(action, ToAgent):
+                robot = self.stats.robots[action.name]
+                robot.stale_replies += action.stale
+                self._rx_pubs[action.name].put(action.data)
+            elif not self.connected.is_set():
+                continue  # coordinator away: lost; the agents' boards retry
+            elif isinstance(action, Unicast):
+                self._send_unicast(action.name, action.data)
+            else:
+                self._send_broadcast(action)
+
+    def _send_broadcast(self, action: Broadcast) -> None:
+        """One BCAST frame to every robot: no ACK, no MAC retry, no TX Status (frame id 0)."""
+        frame: ApiFrame = (
+            Tx64Request(0, BROADCAST_64, action.data)
+            if self.family == FrameFamily.IEEE_802_15_4
+            else TransmitRequest(0, BROADCAST_64, action.data)
+        )
+        try:
+            self._write_frame(frame)
+        except (serial.SerialException, OSError) as exc:
+            _log.debug("gateway: write failed (%s); the reader reconnects", exc)
+            return
+        self.stats.broadcast_frames += 1
+        self.stats.broadcast_bytes += len(action.data)
+        self.stats.air_s += self._air.mean_broadcast_s(len(action.data))
+        for name in action.names:
+            self.stats.robots[name].sections += 1
+
+    def _send_unicast(self, name: str, data: bytes) -> None:
+        """``data`` to robot ``name`` as TX Requests of at most the RF payload each."""
+        address = self.robots[name]
+        robot = self.stats.robots[name]
+        for start in range(0, len(data), self._max_payload):
+            chunk = data[start : start + self._max_payload]
+            frame_id = self._next_frame_id()
+            self._pending[frame_id] = name
+            frame: ApiFrame = (
+                Tx64Request(frame_id, address, chunk)
+                if self.family == FrameFamily.IEEE_802_15_4
+                else TransmitRequest(frame_id, address, chunk)
+            )
+            try:
+                self._write_frame(frame)
+            except (serial.SerialException, OSError) as exc:
+                _log.debug("gateway: write failed (%s); the reader reconnects", exc)
+                break
+            robot.tx_frames += 1
+            robot.tx_bytes += len(chunk)
+            self.stats.air_s += self._air.mean_unicast_s(len(chunk))
 
     # ------------------------------------------------------------------ radio -> bus
     def _read_loop(self) -> None:
@@ -383,6 +460,11 @@ class Gateway:
             self.stats.air_s += self._air.mean_unicast_s(len(frame.data))
             if isinstance(frame, Rx64Packet):
                 robot.rssi_dbm = frame.rssi_dbm
+            if self.packer is not None:
+                with self._packer_lock:
+                    actions = self.packer.from_robot(name, frame.data)
+                self._act(actions)
+                return
             self._rx_pubs[name].put(frame.data)
         elif isinstance(frame, TxStatus | TransmitStatus):
             name = self._pending.pop(frame.frame_id, None)

@@ -21,7 +21,7 @@ import signal
 import sys
 import threading
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from types import FrameType
 from typing import Any
 
@@ -51,12 +51,16 @@ class GatewayPlan:
         config: ``[gateway]`` settings as a dict (:class:`GatewayConfig` fields).
         robots: agent name -> 64-bit address.
         simulated: agent names whose robot is simulated behind the simulated air.
+        rate_hz: the experiment's tick rate [Hz] (broadcast mode gathers a tick's TICKs).
+        reply_every: agent name -> m: its robot answers every m-th tick (broadcast mode).
     """
 
     experiment: str
     config: dict[str, Any]
     robots: dict[str, int]
     simulated: tuple[str, ...] = ()
+    rate_hz: float = 20.0
+    reply_every: dict[str, int] = field(default_factory=dict)
 
     def to_json(self) -> str:
         """Serialise (the command line of the process)."""
@@ -71,6 +75,8 @@ class GatewayPlan:
             data["config"],
             {k: int(v) for k, v in data["robots"].items()},
             tuple(data.get("simulated", ())),
+            float(data.get("rate_hz", 20.0)),
+            {k: int(v) for k, v in data.get("reply_every", {}).items()},
         )
 
 
@@ -95,6 +101,12 @@ def plan_for(experiment: Any) -> GatewayPlan | None:
         asdict(config),
         {name: link.address for name, link in parsed.items()},
         tuple(name for name, link in parsed.items() if link.sim is not None),
+        float(experiment.rate_hz),
+        {
+            spec.name: spec.reply_every
+            for spec in experiment.agents
+            if spec.name in links and spec.reply_every is not None
+        },
     )
 
 
@@ -141,7 +153,15 @@ def serve(
             threading.Thread(
                 target=_apply_faults, args=(coordinator, plan, faults), daemon=True
             ).start()
-        with Gateway(config, keys, plan.robots, session, port_url=port_url) as gateway:
+        with Gateway(
+            config,
+            keys,
+            plan.robots,
+            session,
+            port_url=port_url,
+            reply_every=plan.reply_every,
+            rate_hz=plan.rate_hz,
+        ) as gateway:
             sys.stdout.write(f"READY {gateway.port_url} {gateway.family.value}\n")
             sys.stdout.flush()
             stop.wait()

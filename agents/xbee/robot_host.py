@@ -10,9 +10,10 @@ follows the same plant. Its UART is carried by the bus keys ``agent/<name>/link/
 * ``sim://``: a :class:`~hilswarm.agents.link.sim_board.SimBoard` behind a
   :class:`~hilswarm.agents.link.wire_server.WireServer` (the protocol-checking Python firmware).
 * ``simavr://``: the real firmware in simavr (paced to the wall clock). With a plant, the plant
-  advances by ``dt`` just before each TICK frame reaches the firmware: the outputs the
-  firmware drove since the previous TICK are held over the step, the plant's voltages are put on
-  the simulated pins, then the TICK applies its writes and samples them.
+  advances by ``dt`` just before each TICK frame reaches the firmware (or each BCAST holding
+  this robot's section, protocol 2): the outputs the firmware drove since the previous one are
+  held over the step, the plant's voltages are put on the simulated pins, then the frame applies
+  its writes and samples them.
 
 Bus callbacks only queue the bytes; one worker thread feeds the robot.
 """
@@ -27,8 +28,15 @@ from typing import Any
 
 import zenoh
 from hilswarm.agents import bus
+from hilswarm.agents.errors import WireFormatError
 from hilswarm.agents.link.board import PinMode
-from hilswarm.agents.link.codec import ConfigMsg, FrameDecoder, MsgType, parse_payload
+from hilswarm.agents.link.codec import (
+    ConfigMsg,
+    FrameDecoder,
+    MsgType,
+    parse_bcast_body,
+    parse_payload,
+)
 from hilswarm.agents.link.simavr import SimavrBoard, outputs_from_state
 from hilswarm.agents.link.url import board_for_url
 from hilswarm.agents.link.wire_server import WireServer
@@ -74,6 +82,7 @@ class RobotHost:
         self._uart: SerialUart | None = None
         self._decoder = FrameDecoder()
         self._modes: dict[int, PinMode] = {}
+        self._bcast_id = 0
         self._reader: ChannelReader | None = None
 
     def start(self) -> None:
@@ -130,11 +139,22 @@ class RobotHost:
                     if isinstance(msg, ConfigMsg):
                         self._modes = {e.pin: PinMode(e.mode) for e in msg.entries}
                         self._simavr._modes = dict(self._modes)
-            elif kind == MsgType.TICK and self._modes:
+                        self._bcast_id = msg.bcast_id
+            elif (kind == MsgType.TICK or self._ours(payload)) and self._modes:
                 state = self._simavr.harness.state()
                 volts = self.plant.advance(outputs_from_state(state, self._modes), self.dt or 0.05)
                 for pin, value in volts.items():
                     self._simavr.set_input_voltage(int(pin), float(value))
+
+    def _ours(self, payload: bytes) -> bool:
+        """True for a BCAST that holds a section of this robot."""
+        if payload[0] != MsgType.BCAST or self._bcast_id == 0:
+            return False
+        try:
+            sections = parse_bcast_body(payload[1], payload[2:]).sections
+        except WireFormatError:
+            return False
+        return any(s.board_id == self._bcast_id for s in sections)
 
     def stop(self) -> None:
         """Power the robot off. Idempotent."""

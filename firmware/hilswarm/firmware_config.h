@@ -14,7 +14,7 @@ namespace config {
 
 // Firmware version (reported by HELLO; separate from wire::kProtocolVersion).
 const uint8_t kFirmwareMajor = 1;
-const uint8_t kFirmwareMinor = 1;
+const uint8_t kFirmwareMinor = 2;  // 1.2: protocol 2 (BCAST)
 
 const uint32_t kBaud = HILSWARM_BAUD;
 

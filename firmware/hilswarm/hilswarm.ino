@@ -90,15 +90,15 @@ bool send_prepared_reply() {
 void on_frame(bool answered) {
   const uint8_t* payload = parser.payload();
   const uint8_t length = parser.payload_length();
-  if (!answered) {
-    engine.respond(payload, length, millis(), frame_time_us, builder);
+  // A BCAST that does not ask this board for a reply is answered by nothing.
+  if (!answered && engine.respond(payload, length, millis(), frame_time_us, builder)) {
     send_reply();
   }
   prepared.built = false;
   prepared.frame = nullptr;
   if (payload[0] == hilswarm::wire::kTick) last_tick_length = length;
-  // The TICK's outputs are driven while the reply's first byte is on the wire: the writes add
-  // nothing to the round trip.
+  // The TICK's (or our BCAST section's) outputs are driven while the reply's first byte is on
+  // the wire: the writes add nothing to the round trip.
   engine.apply_pending();
 }
 

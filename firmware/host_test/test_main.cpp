@@ -354,7 +354,7 @@ void test_golden(const std::string& path) {
     const std::string name = v["name"].str();
     const Bytes payload = test::from_hex(v["payload_hex"].str());
     const auto& fields = v["fields"];
-    if (payload[0] == wire::kTick) continue;  // below, after a matching CONFIG
+    if (payload[0] == wire::kTick || payload[0] == wire::kBcast) continue;  // below
     fake::reset();
     link.boot();
     const Bytes reply = link.request(payload);
@@ -401,6 +401,57 @@ void test_golden(const std::string& path) {
     }
     check(answered, name + ": some CONFIG vector makes this TICK valid");
   }
+  // BCAST vectors (protocol 2): each board configured by the named CONFIG vector applies only
+  // its own section, and answers only when its section asks.
+  long bcasts = 0;
+  for (const auto& v : vectors) {
+    if (!v["valid"].boolean || v["fields"]["type"].str() != "BCAST") continue;
+    const std::string name = v["name"].str();
+    const Bytes payload = test::from_hex(v["payload_hex"].str());
+    for (const auto& e : v["expect"].array) {
+      const std::string config_name = e["config"].str();
+      const long long id = e["board_id"].integer();
+      bool found = false;
+      for (const auto* c : configs) {
+        if ((*c)["name"].str() != config_name) continue;
+        found = true;
+        fake::reset();
+        link.boot();
+        check_reply(link.request(test::from_hex((*c)["payload_hex"].str())), wire::kConfig,
+                    static_cast<uint8_t>(test::from_hex((*c)["payload_hex"].str())[1]),
+                    name + ": " + config_name);
+        check_eq(link.engine.bcast_id(), id, name + ": broadcast id from " + config_name);
+        const size_t before = link.replies.size();
+        link.feed(test::frame(payload));
+        bool asked = false;
+        for (const auto& s : v["fields"]["sections"].array) {
+          if (s["board_id"].integer() == id) asked = s["reply"].boolean;
+        }
+        check_eq(link.replies.size() - before, asked ? 1 : 0, name + ": replies of board " +
+                                                                   std::to_string(id));
+        if (asked && link.replies.size() == before + 1) {
+          const Bytes& r = link.replies.back();
+          check_reply(r, wire::kBcast, payload[1], name);
+          check_eq(r.size(), 9, name + ": status, time and the A0 sample");
+        }
+        const uint32_t dout = static_cast<uint32_t>(e["dout"].integer());
+        for (int pin = 0; pin < 20; ++pin) {
+          if (fake::board.mode[pin] == wire::kModeDigitalOut) {
+            check_eq(fake::board.digital_out[pin], (dout >> pin) & 1,
+                     name + ": board " + std::to_string(id) + " D" + std::to_string(pin));
+          }
+        }
+        for (const auto& w : e["pwm"].array) {
+          const int pin = static_cast<int>(w["pin"].integer());
+          check_eq(fake::board.pwm[pin], w["value"].integer(),
+                   name + ": board " + std::to_string(id) + " PWM " + std::to_string(pin));
+        }
+        ++bcasts;
+      }
+      check(found, name + ": CONFIG vector " + config_name + " exists");
+    }
+  }
+  check(bcasts >= 6, "every BCAST vector checked on every board it names");
   check_eq(fake::board.violations, 0, "fake board saw no illegal pin operation");
   std::printf("golden vectors: %zu (%ld frames, %ld drops, %zu configs, %zu ticks) from %s\n",
               vectors.size(), frames, drops, configs.size(), ticks.size(), path.c_str());
@@ -415,9 +466,9 @@ void test_engine_boot_and_hello() {
   Bytes r = link.request(hello(1));
   check_reply(r, wire::kHello, 1, "HELLO");
   check(r.size() == 9 + 20 && at(r, 8) == 20, "HELLO_REPLY has 20 capabilities");
-  check_eq(at(r, 2), 1, "protocol version");
+  check_eq(at(r, 2), 2, "protocol version");
   check_eq(at(r, 3), 1, "fw major");
-  check_eq(at(r, 4), 0, "fw minor");
+  check_eq(at(r, 4), 0, "fw minor (the test link says 1.0)");
   check_eq(at(r, 7), wire::kStatusReset | wire::kStatusNotConfigured, "status after boot");
   r = link.request(hello(2));
   check_eq(at(r, 7), wire::kStatusNotConfigured, "HELLO cleared RESET");
@@ -431,7 +482,7 @@ void test_engine_boot_and_hello() {
   r = link.request(hello(5));
   check_eq(at(r, 7), wire::kStatusNotConfigured, "HELLO cleared HW_WATCHDOG_RESET");
 
-  const uint8_t unknown[] = {0x00, 0x06, 0x7E, 0x7F, 0x81, 0x83, 0xFF};
+  const uint8_t unknown[] = {0x00, 0x07, 0x7E, 0x7F, 0x81, 0x83, 0xFF};
   for (uint8_t t : unknown) {
     check_error(link.request({t, 9}), 9, wire::kErrUnknownType, t,
                 "unknown type " + std::to_string(t));
@@ -453,8 +504,9 @@ void test_engine_config_errors() {
   };
   const Case cases[] = {
       {"body of 1 byte", {wire::kConfig, 1, 0}, wire::kErrBadLength, wire::kConfig},
-      {"body of 3 bytes", {wire::kConfig, 1, 0, 0, 5}, wire::kErrBadLength, wire::kConfig},
-      {"body of 7 bytes", {wire::kConfig, 1, 0, 0, 5, 2, 0, 0, 9}, wire::kErrBadLength,
+      {"body of 4 bytes", {wire::kConfig, 1, 0, 0, 5, 1}, wire::kErrBadLength, wire::kConfig},
+      {"body of 5 bytes", {wire::kConfig, 1, 0, 0, 5, 2, 0}, wire::kErrBadLength, wire::kConfig},
+      {"body of 8 bytes", {wire::kConfig, 1, 0, 0, 5, 2, 0, 0, 9, 1}, wire::kErrBadLength,
        wire::kConfig},
       {"pin 20", config(1, 0, {{20, wire::kModeDigitalOut, 0}}), wire::kErrBadPin, 20},
       {"pin 255", config(1, 0, {{255, wire::kModeDigitalOut, 0}}), wire::kErrBadPin, 255},
@@ -693,6 +745,141 @@ void test_engine_rx_errors_and_id() {
               "SET_ID of 3 bytes");
 }
 
+// ---------------------------------------------------------------- broadcast (protocol 2)
+
+// A Frisbee-like board: D4/D7/D8/D12 out, PWM 5/6, servo 9, A0 in; section = 1 + 2 + 2 = 5 B.
+const std::vector<Entry> kBcastBoard = {
+    {4, wire::kModeDigitalOut, 0}, {7, wire::kModeDigitalOut, 0}, {8, wire::kModeDigitalOut, 1},
+    {12, wire::kModeDigitalOut, 0}, {5, wire::kModePwm, 0}, {6, wire::kModePwm, 3},
+    {9, wire::kModeServo, 1500}, {14, wire::kModeAnalogIn, 0},
+};
+
+Bytes config_id(uint8_t seq, uint16_t watchdog_ms, const std::vector<Entry>& entries,
+                uint8_t id) {
+  Bytes p = config(seq, watchdog_ms, entries);
+  p.push_back(id);
+  return p;
+}
+
+Bytes section(uint8_t id, bool reply, const Bytes& data) {
+  Bytes s = {id, static_cast<uint8_t>(data.size() | (reply ? wire::kBcastReplyFlag : 0))};
+  s.insert(s.end(), data.begin(), data.end());
+  return s;
+}
+
+Bytes bcast(uint8_t seq, const std::vector<Bytes>& sections) {
+  Bytes p = {wire::kBcast, seq};
+  for (const Bytes& s : sections) p.insert(p.end(), s.begin(), s.end());
+  return p;
+}
+
+// Section data for kBcastBoard: levels (bit j = j-th DIGITAL_OUT pin), PWM5, PWM6, servo9.
+Bytes bcast_data(uint8_t levels, uint8_t pwm5, uint8_t pwm6, uint16_t servo9) {
+  return {levels, pwm5, pwm6, static_cast<uint8_t>(servo9), static_cast<uint8_t>(servo9 >> 8)};
+}
+
+size_t feed_count(test::Link& link, const Bytes& payload) {
+  const size_t before = link.replies.size();
+  link.feed(test::frame(payload));
+  return link.replies.size() - before;
+}
+
+void test_engine_broadcast() {
+  fake::reset();
+  test::Link link;
+  link.now_ms = 1000;
+  link.boot();
+  link.request(hello(0));  // clears RESET
+  // Not configured (and no id): a BCAST is ignored, never answered.
+  check_eq(feed_count(link, bcast(1, {section(2, true, bcast_data(1, 1, 1, 1000))})), 0,
+           "BCAST before CONFIG: silence");
+  // A CONFIG of protocol 1 (no trailing byte) leaves the board out of broadcasts.
+  link.request(config(2, 100, kBcastBoard));
+  check_eq(link.engine.bcast_id(), 0, "no trailing byte: broadcast id 0");
+  check_eq(link.engine.section_length(), 5, "section: 1 level byte + 2 PWM + 1 servo");
+  check_eq(feed_count(link, bcast(3, {section(0, true, bcast_data(1, 1, 1, 1000))})), 0,
+           "id 0 never matches");
+  check_error(link.request(Bytes{wire::kConfig, 4, 0, 0, 1, 2}), 4, wire::kErrBadLength,
+              wire::kConfig, "CONFIG body of 2 + 4n + 2 bytes");
+  Bytes r = link.request(config_id(5, 100, kBcastBoard, 7));
+  check_reply(r, wire::kConfig, 5, "CONFIG with broadcast id 7");
+  check_eq(at(r, 3), kBcastBoard.size(), "the id byte is no pin entry");
+  check_eq(link.engine.bcast_id(), 7, "broadcast id 7 stored with the configuration");
+
+  // Our section among others: only ours applied; the reply only when asked for.
+  fake::board.analog_in[14] = 444;
+  const long writes = fake::board.writes;
+  check_eq(feed_count(link, bcast(6, {section(3, true, bcast_data(0x0F, 9, 9, 2500)),
+                                      section(7, false, bcast_data(0x05, 10, 20, 1000)),
+                                      section(8, true, Bytes{1, 2})})),
+           0, "our section does not ask: no reply");
+  check(fake::board.writes > writes, "our section applied");
+  check_eq(fake::board.digital_out[4], 1, "level bit 0 -> D4");
+  check_eq(fake::board.digital_out[7], 0, "level bit 1 -> D7");
+  check_eq(fake::board.digital_out[8], 1, "level bit 2 -> D8");
+  check_eq(fake::board.digital_out[12], 0, "level bit 3 -> D12");
+  check_eq(fake::board.pwm[5], 10, "PWM 5 from our section");
+  check_eq(fake::board.pwm[6], 20, "PWM 6 from our section");
+  check_eq(fake::board.servo[9], 1000, "servo 9 from our section");
+  link.now_us = 123456;
+  check_eq(feed_count(link, bcast(9, {section(7, true, bcast_data(0x08, 11, 21, 1100))})), 1,
+           "our section asks: one reply");
+  r = link.replies.back();
+  check_reply(r, wire::kBcast, 9, "BCAST_REPLY echoes the broadcast's seq");
+  check_eq(r.size(), 9, "status, board time, one sample per input pin");
+  check_eq(status_of(r), 0, "status");
+  check_eq(u16(r, 7), 444, "A0 sampled");
+  check_eq(fake::board.digital_out[12], 1, "applied with a reply too");
+  check_eq(fake::board.servo[9], 1100, "servo");
+
+  // Faulty broadcasts are dropped (RX_ERRORS), never answered with ERROR, nothing applied.
+  const int pwm5 = fake::board.pwm[5];
+  check_eq(feed_count(link, bcast(10, {section(7, true, Bytes{1, 2, 3})})), 0, "short section");
+  check_eq(feed_count(link, bcast(11, {section(7, true, bcast_data(0, 1, 1, 499))})), 0,
+           "servo value out of range");
+  check_eq(feed_count(link, bcast(12, {Bytes{7, 0x85, 1, 2}})), 0, "section past the end");
+  check_eq(feed_count(link, bcast(13, {Bytes{7, 0x45, 0, 1, 1, 0xE8, 3}})), 0,
+           "reserved header bit");
+  check_eq(feed_count(link, bcast(14, {section(7, true, bcast_data(0, 1, 1, 1000)), Bytes{9}})),
+           0, "a well-formed section of ours in a frame whose tail is not: dropped whole");
+  check_eq(fake::board.pwm[5], pwm5, "nothing applied from a faulty broadcast");
+  r = link.request(tick(15, 0, 0));
+  check_eq(status_of(r), wire::kStatusRxErrors, "the drops reported as RX_ERRORS");
+
+  // Watchdog: a broadcast without our section does not feed it; one with ours does.
+  link.request(tick(16, 0, 0, cat({pwm_write(5, 77)})));
+  link.now_ms += 60;
+  feed_count(link, bcast(17, {section(3, false, bcast_data(0, 1, 1, 1000))}));
+  link.now_ms += 60;
+  link.engine.poll(link.now_ms);
+  check_eq(fake::board.pwm[5], 0, "others' broadcasts do not feed our watchdog: tripped");
+  check_eq(fake::board.pwm[6], 3, "PWM 6 safe");
+  feed_count(link, bcast(18, {section(7, false, bcast_data(0, 50, 51, 1000))}));
+  check_eq(fake::board.pwm[5], 50, "a broadcast after a trip is applied");
+  link.now_ms += 90;
+  feed_count(link, bcast(19, {section(7, false, bcast_data(0, 52, 51, 1000))}));
+  link.now_ms += 90;
+  link.engine.poll(link.now_ms);
+  check_eq(fake::board.pwm[5], 52, "our broadcasts feed the watchdog");
+  check_eq(feed_count(link, bcast(20, {section(7, true, bcast_data(0, 53, 51, 1000))})), 1,
+           "reply");
+  check_eq(status_of(link.replies.back()), wire::kStatusWatchdogTripped,
+           "the trip reported in the next reply");
+
+  // E-stopped: writes ignored, samples still answered.
+  link.request(estop(21));
+  const long before_estop = fake::board.writes;
+  check_eq(feed_count(link, bcast(22, {section(7, true, bcast_data(0x0F, 99, 99, 2000))})), 1,
+           "answered while e-stopped");
+  check(status_of(link.replies.back()) & wire::kStatusEstopped, "ESTOPPED reported");
+  check_eq(fake::board.writes, before_estop, "writes ignored while e-stopped");
+  // A CONFIG without the id takes the board out of broadcasts again.
+  link.request(config(23, 100, kBcastBoard));
+  check_eq(feed_count(link, bcast(24, {section(7, true, bcast_data(0, 1, 1, 1000))})), 0,
+           "out of broadcasts after a CONFIG without id");
+  check_eq(fake::board.violations, 0, "no illegal pin operation");
+}
+
 // ---------------------------------------------------------------- fuzz
 
 Bytes random_request(test::Rng& rng, const hilswarm::Engine& engine) {
@@ -716,7 +903,41 @@ Bytes random_request(test::Rng& rng, const hilswarm::Engine& engine) {
       entries.push_back(e);
     }
     Bytes p = config(seq, static_cast<uint16_t>(rng.chance(70) ? rng.below(300) : 0), entries);
+    if (rng.chance(50)) p.push_back(static_cast<uint8_t>(rng.chance(90) ? 1 + rng.below(4) : 0));
     if (rng.chance(5)) p.resize(2 + rng.below(static_cast<uint32_t>(p.size())));
+    return p;
+  }
+  if (kind < 35) {  // BCAST: sections of ids 1-4 (ours among them, mostly well-formed)
+    Bytes p = {wire::kBcast, seq};
+    const uint32_t n = 1 + rng.below(6);
+    for (uint32_t i = 0; i < n; ++i) {
+      const uint8_t id = static_cast<uint8_t>(1 + rng.below(4));
+      uint8_t len = id == engine.bcast_id() && rng.chance(80) ? engine.section_length()
+                                                               : static_cast<uint8_t>(rng.below(8));
+      Bytes data(len);
+      for (auto& b : data) b = static_cast<uint8_t>(rng.next());
+      if (id == engine.bcast_id() && len == engine.section_length() && rng.chance(70)) {
+        uint32_t n_out = 0;  // plausible servo values: after the levels, in pin order
+        for (uint8_t pin = 0; pin < 20; ++pin) n_out += engine.pin(pin).mode == wire::kModeDigitalOut;
+        uint32_t at_byte = (n_out + 7) / 8;
+        for (uint8_t pin = 0; pin < 20 && at_byte < len; ++pin) {
+          const uint8_t mode = engine.pin(pin).mode;
+          if (mode == wire::kModePwm) ++at_byte;
+          if (mode == wire::kModeServo && at_byte + 1 < len) {
+            const uint16_t us = static_cast<uint16_t>(500 + rng.below(2001));
+            data[at_byte] = static_cast<uint8_t>(us);
+            data[at_byte + 1] = static_cast<uint8_t>(us >> 8);
+            at_byte += 2;
+          }
+        }
+      }
+      uint8_t hdr = static_cast<uint8_t>(len | (rng.chance(40) ? wire::kBcastReplyFlag : 0));
+      if (rng.chance(3)) hdr |= wire::kBcastReservedFlag;
+      p.push_back(id);
+      p.push_back(hdr);
+      p.insert(p.end(), data.begin(), data.end());
+    }
+    if (rng.chance(5)) p.resize(2 + rng.below(static_cast<uint32_t>(p.size() - 1)));
     return p;
   }
   if (kind < 70) {  // TICK, mostly plausible for the current configuration
@@ -766,7 +987,7 @@ void test_fuzz(long frames, uint64_t seed) {
   test::Link link;
   link.boot();
   std::map<int, long> reply_types, error_codes;
-  long clean = 0, mutated = 0, bytes = 0;
+  long clean = 0, mutated = 0, bytes = 0, bcast_frames = 0, bcast_replies = 0;
   for (long i = 0; i < frames; ++i) {
     link.now_ms += rng.below(rng.chance(2) ? 2000 : 40);
     link.now_us = static_cast<uint32_t>(rng.next());
@@ -801,9 +1022,22 @@ void test_fuzz(long frames, uint64_t seed) {
     const size_t got = link.replies.size() - before;
     if (!mutate) {
       ++clean;
-      check(got == 1, "clean frame " + std::to_string(i) + " got " + std::to_string(got) +
-                          " replies: " + test::to_hex(payload));
-      if (got == 1) {
+      const bool broadcast = payload.size() >= 2 && payload[0] == wire::kBcast &&
+                             payload.size() <= wire::kMaxPayload;
+      if (broadcast) {  // answered only when our section asks, never with ERROR
+        ++bcast_frames;
+        check(got <= 1, "BCAST gets at most one reply");
+        if (got == 1) {
+          ++bcast_replies;
+          const Bytes& r = link.replies.back();
+          check(at(r, 0) == (wire::kBcast | wire::kReplyBit) && at(r, 1) == payload[1],
+                "BCAST_REPLY with the broadcast's seq");
+        }
+      } else {
+        check(got == 1, "clean frame " + std::to_string(i) + " got " + std::to_string(got) +
+                            " replies: " + test::to_hex(payload));
+      }
+      if (got == 1 && !broadcast) {
         const Bytes& r = link.replies.back();
         if (payload.size() > wire::kMaxPayload) {
           check(r.size() == 4 && at(r, 0) == wire::kError && at(r, 1) == 0 &&
@@ -853,6 +1087,9 @@ void test_fuzz(long frames, uint64_t seed) {
   for (const auto& kv : error_codes) std::printf(" %d=%ld", kv.first, kv.second);
   std::printf("\n");
   check(error_codes.size() >= 7, "the fuzz loop reached most error codes");
+  std::printf("fuzz: %ld clean BCAST frames, %ld answered\n", bcast_frames, bcast_replies);
+  check(bcast_replies > 0 && bcast_frames > bcast_replies,
+        "the fuzz loop produced answered and silent broadcasts");
   check(reply_types.count(wire::kTick | wire::kReplyBit) &&
             reply_types.count(wire::kConfig | wire::kReplyBit),
         "the fuzz loop produced accepted CONFIGs and TICKs");
@@ -898,6 +1135,7 @@ int main(int argc, char** argv) {
       {"engine_estop", test_engine_estop},
       {"engine_watchdog", test_engine_watchdog},
       {"engine_rx_errors_id", test_engine_rx_errors_and_id},
+      {"engine_broadcast", test_engine_broadcast},
       {"fuzz", [&] { test_fuzz(fuzz_frames, seed); }},
   };
   for (const auto& t : tests) {

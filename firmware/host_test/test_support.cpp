@@ -57,8 +57,7 @@ void Link::feed_byte(uint8_t byte) {
   bool send = false;
   switch (parser.feed(byte)) {
     case hilswarm::FrameParser::kFrame:
-      engine.handle(parser.payload(), parser.payload_length(), now_ms, now_us, builder);
-      send = true;
+      send = engine.handle(parser.payload(), parser.payload_length(), now_ms, now_us, builder);
       break;
     case hilswarm::FrameParser::kTooLong:
       engine.frame_too_long(builder);

@@ -12,6 +12,7 @@ void Engine::begin(bool hw_watchdog_reset, uint32_t now_ms) {
   flags_ = wire::kStatusReset | wire::kStatusNotConfigured;
   if (hw_watchdog_reset) flags_ |= wire::kStatusHwWatchdogReset;
   watchdog_ms_ = 0;
+  bcast_id_ = 0;
   last_rx_ms_ = now_ms;
   link_tripped_ = false;
   derive_pin_sets();
@@ -20,9 +21,17 @@ void Engine::begin(bool hw_watchdog_reset, uint32_t now_ms) {
 void Engine::derive_pin_sets() {
   sets_ = pin_sets(config_);
   n_out_ = 0;
+  n_wide_ = 0;
+  uint8_t values = 0;
   for (uint8_t pin = 0; pin < wire::kPinCount; ++pin) {
-    if (config_[pin].mode == wire::kModeDigitalOut) out_pins_[n_out_++] = pin;
+    const uint8_t mode = config_[pin].mode;
+    if (mode == wire::kModeDigitalOut) out_pins_[n_out_++] = pin;
+    if (mode == wire::kModePwm || mode == wire::kModeServo) {
+      wide_pins_[n_wide_++] = pin;
+      values = static_cast<uint8_t>(values + (mode == wire::kModeServo ? 2 : 1));
+    }
   }
+  section_len_ = static_cast<uint8_t>((n_out_ + 7) / 8 + values);
 }
 
 void Engine::drive_safe() {
@@ -61,14 +70,16 @@ void Engine::frame_too_long(FrameBuilder& out) {
   error(0, wire::kErrFrameTooLong, 0, out);
 }
 
-void Engine::handle(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
+bool Engine::handle(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
                     FrameBuilder& out) {
   // The firmware's way for a TICK (so the host tests check it against every golden vector):
   // prepared, then committed; respond() whenever that does not apply.
+  bool reply = true;
   if (!(prepare(payload, len, now_us, out) && commit(payload, len, now_ms))) {
-    respond(payload, len, now_ms, now_us, out);
+    reply = respond(payload, len, now_ms, now_us, out);
   }
   apply_pending();
+  return reply;
 }
 
 bool Engine::prepare(const uint8_t* payload, uint8_t len, uint32_t now_us, FrameBuilder& out) {
@@ -85,19 +96,20 @@ bool Engine::prepare(const uint8_t* payload, uint8_t len, uint32_t now_us, Frame
   return true;
 }
 
-void Engine::respond(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
+bool Engine::respond(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
                      FrameBuilder& out) {
   pending_body_ = nullptr;
   prepared_payload_ = nullptr;
   // A late frame first reports the silence it ends, then feeds the watchdog.
   poll(now_ms);
-  last_rx_ms_ = now_ms;
-  link_tripped_ = false;
-
   const uint8_t type = payload[0];
   const uint8_t seq = payload[1];
   const uint8_t* body = payload + 2;
   const uint8_t body_len = static_cast<uint8_t>(len - 2);
+  if (type == wire::kBcast) return on_bcast(seq, body, body_len, now_ms, now_us, out);
+  last_rx_ms_ = now_ms;
+  link_tripped_ = false;
+
   switch (type) {
     case wire::kHello:
       on_hello(seq, body_len, out);
@@ -118,6 +130,49 @@ void Engine::respond(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint3
       error(seq, wire::kErrUnknownType, type, out);
       break;
   }
+  return true;
+}
+
+bool Engine::on_bcast(uint8_t seq, const uint8_t* body, uint8_t len, uint32_t now_ms,
+                      uint32_t now_us, FrameBuilder& out) {
+  // Every board hears a broadcast: never an ERROR (the answers would collide on the air). A
+  // frame without a section of ours is none of our business: it does not feed the watchdog, so
+  // a robot the broadcasts leave out goes safe as one whose link is silent.
+  if (bcast_id_ == 0 || (flags_ & wire::kStatusNotConfigured)) return false;
+  uint8_t hdr = 0;
+  const int16_t at = find_section(body, len, bcast_id_, &hdr);
+  if (at == kNoSection) return false;
+  if (at < 0 || (hdr & wire::kBcastLengthMask) != section_len_ || !section_ok(body + at)) {
+    flags_ |= wire::kStatusRxErrors;  // dropped as a damaged frame would be
+    return false;
+  }
+  last_rx_ms_ = now_ms;
+  link_tripped_ = false;
+  if (!(flags_ & wire::kStatusEstopped)) {  // e-stopped: samples only, writes ignored
+    pending_body_ = body + at;
+    pending_len_ = section_len_;
+    pending_section_ = true;
+  }
+  if (!(hdr & wire::kBcastReplyFlag)) return false;
+  out.begin(wire::kBcast | wire::kReplyBit, seq);
+  out.put_u8(take_status());
+  out.put_u32(now_us);
+  put_samples(sets_.input, out);
+  return true;
+}
+
+bool Engine::section_ok(const uint8_t* data) const {
+  uint8_t i = static_cast<uint8_t>((n_out_ + 7) / 8);
+  for (uint8_t k = 0; k < n_wide_; ++k) {
+    if (config_[wide_pins_[k]].mode == wire::kModeServo) {
+      const uint16_t us = read_u16(data + i);
+      if (us < wire::kServoMinUs || us > wire::kServoMaxUs) return false;
+      i = static_cast<uint8_t>(i + 2);
+    } else {
+      i = static_cast<uint8_t>(i + 1);
+    }
+  }
+  return true;
 }
 
 void Engine::on_hello(uint8_t seq, uint8_t body_len, FrameBuilder& out) {
@@ -137,7 +192,8 @@ void Engine::on_config(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuild
   PinConfig next[wire::kPinCount];
   uint16_t watchdog_ms = 0;
   uint8_t n_entries = 0;
-  const RequestError e = check_config(body, len, next, &watchdog_ms, &n_entries);
+  uint8_t bcast_id = 0;
+  const RequestError e = check_config(body, len, next, &watchdog_ms, &n_entries, &bcast_id);
   if (!e.ok()) return error(seq, e, out);
 
   // Release every pin whose mode changes before taking new ones (no transient Timer1 clash).
@@ -155,6 +211,7 @@ void Engine::on_config(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuild
   derive_pin_sets();
   drive_safe();
   watchdog_ms_ = watchdog_ms;
+  bcast_id_ = bcast_id;
   link_tripped_ = false;
   flags_ &= static_cast<uint8_t>(~(wire::kStatusEstopped | wire::kStatusNotConfigured));
 
@@ -174,6 +231,7 @@ void Engine::on_tick(uint8_t seq, const uint8_t* body, uint8_t len, uint32_t now
   if (!(flags_ & wire::kStatusEstopped)) {  // e-stopped: samples only, writes ignored
     pending_body_ = body;
     pending_len_ = len;
+    pending_section_ = false;
   }
 
   // Samples first: they do not depend on this TICK's writes (inputs only), and the reply can
@@ -186,8 +244,12 @@ void Engine::build_tick_reply(uint8_t seq, const uint8_t* body, uint8_t status, 
   out.begin(wire::kTick | wire::kReplyBit, seq);
   out.put_u8(status);
   out.put_u32(now_us);
+  put_samples(body + 3, out);
+}
+
+void Engine::put_samples(const uint8_t* mask, FrameBuilder& out) {
   for (uint8_t first = 0; first < wire::kPinCount; first = static_cast<uint8_t>(first + 8)) {
-    uint8_t bits = body[3 + first / 8];  // check_tick: no rmask bit beyond the last pin
+    uint8_t bits = mask[first / 8];  // no mask bit beyond the last pin (check_tick, PinSets)
     for (uint8_t pin = first; bits != 0; ++pin, bits = static_cast<uint8_t>(bits >> 1)) {
       if (!(bits & 1U)) continue;
       if (config_[pin].mode == wire::kModeAnalogIn) {
@@ -203,6 +265,23 @@ void Engine::apply_pending() {
   const uint8_t* body = pending_body_;
   if (body == nullptr) return;
   pending_body_ = nullptr;
+  if (pending_section_) {  // our BCAST section: levels by DIGITAL_OUT index, then every value
+    for (uint8_t k = 0; k < n_out_; ++k) {
+      hal::write_digital(out_pins_[k], (body[k / 8] & pin_bit(k)) ? 1 : 0);
+    }
+    uint8_t i = static_cast<uint8_t>((n_out_ + 7) / 8);
+    for (uint8_t k = 0; k < n_wide_; ++k) {
+      const uint8_t pin = wide_pins_[k];
+      if (config_[pin].mode == wire::kModeServo) {
+        hal::write_servo(pin, read_u16(body + i));
+        i = static_cast<uint8_t>(i + 2);
+      } else {
+        hal::write_pwm(pin, body[i]);
+        i = static_cast<uint8_t>(i + 1);
+      }
+    }
+    return;
+  }
   // Every DIGITAL_OUT pin gets its dout level (the cached list: no walk over every pin).
   for (uint8_t k = 0; k < n_out_; ++k) {
     const uint8_t pin = out_pins_[k];

@@ -24,10 +24,13 @@ class Engine {
   // Boot: every pin UNUSED, status RESET | NOT_CONFIGURED (| HW_WATCHDOG_RESET).
   void begin(bool hw_watchdog_reset, uint32_t now_ms);
 
-  // Answers one CRC-valid payload (type, seq, body): exactly one reply or ERROR is built into
-  // `out`, and a TICK's writes are applied. Any valid frame feeds the link watchdog (after
-  // checking it for a trip). Same as respond() followed by apply_pending().
-  void handle(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
+  // Answers one CRC-valid payload (type, seq, body): one reply or ERROR is built into `out`,
+  // and a TICK's (or our BCAST section's) writes are applied. Any valid frame but a BCAST feeds
+  // the link watchdog (after checking it for a trip); a BCAST feeds it only when it holds a
+  // valid section of ours. Returns false when nothing is to be sent: a BCAST that does not ask
+  // this board for a reply (a broadcast is never answered with ERROR). Same as respond()
+  // followed by apply_pending().
+  bool handle(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
               FrameBuilder& out);
 
   // handle() in two halves, so the firmware can start sending the reply before it drives the
@@ -36,7 +39,7 @@ class Engine {
   // takes its samples and builds its reply, and remembers where the writes are. apply_pending()
   // applies them; it must be called before `payload` changes (the firmware calls it right after
   // queueing the reply, before reading the next byte). Does nothing if there are none.
-  void respond(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
+  bool respond(const uint8_t* payload, uint8_t len, uint32_t now_ms, uint32_t now_us,
                FrameBuilder& out);
   void apply_pending();
 
@@ -63,6 +66,7 @@ class Engine {
     take_status();
     pending_body_ = (flags_ & wire::kStatusEstopped) ? nullptr : payload + 2;
     pending_len_ = static_cast<uint8_t>(len - 2);
+    pending_section_ = false;
     return true;
   }
   // Sets the board time of the reply prepare() built in `out` to `now_us` (before finish()): the
@@ -88,6 +92,8 @@ class Engine {
   uint8_t peek_status() const { return flags_; }
   const PinConfig& pin(uint8_t p) const { return config_[p]; }
   uint16_t watchdog_ms() const { return watchdog_ms_; }
+  uint8_t bcast_id() const { return bcast_id_; }
+  uint8_t section_length() const { return section_len_; }
 
  private:
   void on_hello(uint8_t seq, uint8_t body_len, FrameBuilder& out);
@@ -98,6 +104,10 @@ class Engine {
                         FrameBuilder& out);
   void on_estop(uint8_t seq, uint8_t body_len, FrameBuilder& out);
   void on_set_id(uint8_t seq, const uint8_t* body, uint8_t len, FrameBuilder& out);
+  bool on_bcast(uint8_t seq, const uint8_t* body, uint8_t len, uint32_t now_ms, uint32_t now_us,
+                FrameBuilder& out);
+  bool section_ok(const uint8_t* data) const;  // servo values in range (length checked before)
+  void put_samples(const uint8_t* mask, FrameBuilder& out);  // u16 per mask bit, ascending
   void error(uint8_t seq, uint8_t code, uint8_t detail, FrameBuilder& out);
   void error(uint8_t seq, RequestError e, FrameBuilder& out) { error(seq, e.code, e.detail, out); }
   uint8_t take_status() {  // current flags; clears the one-shot events
@@ -115,9 +125,14 @@ class Engine {
   PinSets sets_ = {{0, 0, 0}, {0, 0, 0}, {0, 0, 0}, {0, 0, 0}};
   uint8_t out_pins_[wire::kPinCount] = {};  // DIGITAL_OUT pins, ascending
   uint8_t n_out_ = 0;
+  uint8_t wide_pins_[wire::kPinCount] = {};  // PWM and SERVO pins, ascending (BCAST sections)
+  uint8_t n_wide_ = 0;
+  uint8_t section_len_ = 0;  // data bytes of our BCAST section: levels, then PWM/servo values
+  uint8_t bcast_id_ = 0;     // our BCAST id (CONFIG, protocol 2); 0 = not in broadcasts
   // The validated TICK body whose writes respond() left for apply_pending() (nullptr: none).
   const uint8_t* pending_body_ = nullptr;
   uint8_t pending_len_ = 0;
+  bool pending_section_ = false;  // pending_body_ is our BCAST section, not a TICK body
   // The payload prepare() answered (nullptr: none), its length and the status it reported.
   const uint8_t* prepared_payload_ = nullptr;
   uint8_t prepared_len_ = 0;

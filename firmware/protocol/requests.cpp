@@ -70,8 +70,8 @@ bool is_input_mode(uint8_t mode) {
 }
 
 RequestError check_config(const uint8_t* body, uint8_t len, PinConfig* config,
-                          uint16_t* watchdog_ms, uint8_t* n_entries) {
-  if (len < 2 || (len - 2) % 4 != 0) return fail(wire::kErrBadLength, wire::kConfig);
+                          uint16_t* watchdog_ms, uint8_t* n_entries, uint8_t* bcast_id) {
+  if (len < 2 || (len - 2) % 4 > 1) return fail(wire::kErrBadLength, wire::kConfig);
   const uint8_t n = static_cast<uint8_t>((len - 2) / 4);
   const uint8_t* entries = body + 2;
 
@@ -116,7 +116,26 @@ RequestError check_config(const uint8_t* body, uint8_t len, PinConfig* config,
   }
   *watchdog_ms = read_u16(body);
   *n_entries = n;
+  *bcast_id = (len - 2) % 4 == 1 ? body[len - 1] : 0;
   return kOk;
+}
+
+int16_t find_section(const uint8_t* body, uint8_t len, uint8_t id, uint8_t* hdr) {
+  int16_t found = kNoSection;
+  uint8_t i = 0;
+  while (i < len) {
+    if (static_cast<uint16_t>(i) + 2 > len || (body[i + 1] & wire::kBcastReservedFlag)) {
+      return kBadBroadcast;
+    }
+    const uint16_t end = static_cast<uint16_t>(i + 2 + (body[i + 1] & wire::kBcastLengthMask));
+    if (end > len) return kBadBroadcast;
+    if (body[i] == id && found == kNoSection) {
+      found = static_cast<int16_t>(i + 2);
+      *hdr = body[i + 1];
+    }
+    i = static_cast<uint8_t>(end);
+  }
+  return found;
 }
 
 PinSets pin_sets(const PinConfig* config) {

@@ -39,10 +39,11 @@ bool safe_value_ok(uint8_t mode, uint16_t value);
 // True for DIGITAL_IN, DIGITAL_IN_PULLUP and ANALOG_IN.
 bool is_input_mode(uint8_t mode);
 
-// Validates a CONFIG body. On success fills `config` (kPinCount entries; unlisted pins UNUSED),
-// `*watchdog_ms` and `*n_entries` (pins listed in the request).
+// Validates a CONFIG body (2 + 4n bytes, or 3 + 4n with the broadcast id of protocol 2 last).
+// On success fills `config` (kPinCount entries; unlisted pins UNUSED), `*watchdog_ms`,
+// `*n_entries` (pins listed in the request) and `*bcast_id` (0 when absent).
 RequestError check_config(const uint8_t* body, uint8_t len, PinConfig* config,
-                          uint16_t* watchdog_ms, uint8_t* n_entries);
+                          uint16_t* watchdog_ms, uint8_t* n_entries, uint8_t* bcast_id);
 
 // The pin sets a TICK is checked and applied against, as u24 masks stored a byte at a time
 // (bit i of byte i / 8 = pin i; pins 20-23 never set). Derived from the configuration once per
@@ -69,6 +70,13 @@ RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* confi
 // The same, with the configuration's pin sets already derived (the firmware's hot path).
 RequestError check_tick(const uint8_t* body, uint8_t len, const PinConfig* config,
                         const PinSets& sets);
+
+// Where board `id`'s section is in a BCAST body (sections id:u8 hdr:u8 data...): the offset of
+// its data, with its header in `*hdr`; kNoSection if no section has that id, kBadBroadcast if
+// the body is not a whole number of well-formed sections (checked to the end).
+const int16_t kNoSection = -1;
+const int16_t kBadBroadcast = -2;
+int16_t find_section(const uint8_t* body, uint8_t len, uint8_t id, uint8_t* hdr);
 
 // Little-endian readers.
 inline uint16_t read_u16(const uint8_t* p) {

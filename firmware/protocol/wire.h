@@ -1,4 +1,4 @@
-// hilswarm wire protocol, version 1 (docs/protocol.md): every constant of the wire format.
+// hilswarm wire protocol, version 2 (docs/protocol.md): every constant of the wire format.
 //
 // Plain C++ (no Arduino headers): compiled into the firmware by avr-gcc and into the host tests
 // by g++/clang++. Protocol version and firmware version are separate numbers.
@@ -10,7 +10,7 @@
 namespace hilswarm {
 namespace wire {
 
-const uint8_t kProtocolVersion = 1;
+const uint8_t kProtocolVersion = 2;  // 2: BCAST, CONFIG's broadcast id, STALE
 
 // Framing.
 const uint8_t kDelimiter = 0x00;
@@ -27,6 +27,7 @@ const uint8_t kConfig = 0x02;
 const uint8_t kTick = 0x03;
 const uint8_t kEstop = 0x04;
 const uint8_t kSetId = 0x05;
+const uint8_t kBcast = 0x06;  // protocol 2: every robot's outputs, one section per board
 const uint8_t kError = 0x7F;
 
 // Error codes (body of ERROR: code:u8 detail:u8).
@@ -47,7 +48,13 @@ const uint8_t kStatusNotConfigured = 0x04;
 const uint8_t kStatusRxErrors = 0x08;         // event: reported once, then cleared
 const uint8_t kStatusReset = 0x10;            // cleared by HELLO
 const uint8_t kStatusHwWatchdogReset = 0x20;  // cleared by HELLO
+const uint8_t kStatusStale = 0x40;            // never set by a board: a gateway's repeat
 const uint8_t kStatusEvents = kStatusWatchdogTripped | kStatusRxErrors;
+
+// BCAST section header (id:u8 hdr:u8 data[hdr & kBcastLengthMask]).
+const uint8_t kBcastReplyFlag = 0x80;     // this board answers with BCAST_REPLY
+const uint8_t kBcastReservedFlag = 0x40;  // must be 0
+const uint8_t kBcastLengthMask = 0x3F;    // section data length [bytes]
 
 // Pin modes.
 const uint8_t kModeUnused = 0;

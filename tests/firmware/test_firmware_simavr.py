@@ -24,7 +24,11 @@ from hilswarm.agents.link.board import (
     PinConfig,
     PinMode,
 )
+from hilswarm.agents.link.broadcast import SectionLayout
 from hilswarm.agents.link.codec import (
+    BcastMsg,
+    BcastReplyMsg,
+    BcastSection,
     ErrorMsg,
     FrameDecoder,
     HelloMsg,
@@ -302,3 +306,133 @@ def test_a_stalled_harness_times_out_and_its_late_reply_goes_to_no_other_command
             harness.command("mute 2")
     finally:
         harness.stop()
+
+
+# ------------------------------------------------------------------ packed broadcast (protocol 2)
+
+FRISBEE = [
+    *(PinConfig(p, PinMode.DIGITAL_OUT, 0) for p in (4, 7, 8, 12)),
+    PinConfig(5, PinMode.PWM, 0),
+    PinConfig(6, PinMode.PWM, 0),
+    PinConfig(14, PinMode.ANALOG_IN),
+]
+FRISBEE_SAFE = {4: 0, 7: 0, 8: 0, 12: 0, 5: 0, 6: 0}
+#: Outputs of three robots (broadcast id -> pin -> value) in one BCAST.
+BCAST_OUTPUTS = {
+    1: {4: 1, 7: 0, 8: 1, 12: 0, 5: 10, 6: 20},
+    2: {4: 0, 7: 1, 8: 0, 12: 1, 5: 200, 6: 3},
+    3: {4: 1, 7: 1, 8: 1, 12: 1, 5: 255, 6: 1},
+}
+
+
+def _bcast_frame(seq: int, reply_ids: set[int], outputs: dict[int, dict[int, int]]) -> bytes:
+    layout = SectionLayout.of({p.pin: p.mode for p in FRISBEE})
+    sections = tuple(
+        BcastSection(
+            i,
+            i in reply_ids,
+            layout.encode(sum(v << p for p, v in out.items() if p in (4, 7, 8, 12)), out),
+        )
+        for i, out in outputs.items()
+    )
+    return encode_message(BcastMsg(seq, sections))
+
+
+@pytest.fixture
+def two_boards(firmware_built: Path) -> Iterator[list[SimavrBoard]]:
+    boards = [SimavrBoard("uno", timeout_s=0.5, retries=2) for _ in range(2)]
+    try:
+        for board in boards:
+            board.open()
+        yield boards
+    finally:
+        for board in boards:
+            board.close()
+
+
+def _read_reply(board: SimavrBoard, timeout_s: float = 2.0) -> list[Message]:
+    """Replies on ``board``'s link until one arrives or ``timeout_s`` passes."""
+    serial_board = board.serial
+    assert serial_board is not None
+    port = serial_board._port
+    assert port is not None
+    decoder = FrameDecoder()
+    deadline = time.monotonic() + timeout_s
+    replies: list[Message] = []
+    while time.monotonic() < deadline and not replies:
+        replies += [parse_payload(p) for p in decoder.feed(port.read(64))]
+    return replies
+
+
+def test_broadcast_each_board_applies_only_its_own_section(
+    two_boards: list[SimavrBoard],
+) -> None:
+    for board_id, board in zip((1, 2), two_boards, strict=True):
+        assert board.info.protocol_version == 2
+        serial_board = board.serial
+        assert serial_board is not None
+        serial_board.bcast_id = board_id
+        board.configure(FRISBEE, watchdog_s=0)
+        assert board.read_outputs() == FRISBEE_SAFE
+        board.set_analog_input(14, 1.0 + board_id)
+    frame = _bcast_frame(50, {2}, BCAST_OUTPUTS)  # the same bytes on both links, as on the air
+    for board in two_boards:
+        board.serial.write_raw(frame)  # type: ignore[union-attr]
+    replies = _read_reply(two_boards[1])
+    assert len(replies) == 1 and isinstance(replies[0], BcastReplyMsg), replies
+    assert replies[0].seq == 50 and replies[0].status == 0
+    assert abs(replies[0].samples[0] - 614) <= 3  # 3.0 V on A0 of board 2
+    assert _read_reply(two_boards[0], timeout_s=0.3) == []  # board 1 was not asked
+    for board_id, board in zip((1, 2), two_boards, strict=True):
+        assert board.read_outputs() == BCAST_OUTPUTS[board_id], board_id
+    # a TICK still works as before on the same boards (protocol 1 requests unchanged)
+    assert two_boards[0].exchange({5: 77}, [14]).samples[14] > 0
+    assert two_boards[0].read_outputs()[5] == 77
+
+
+def test_broadcast_without_our_section_trips_the_watchdog(board: SimavrBoard) -> None:
+    serial_board = board.serial
+    assert serial_board is not None
+    serial_board.bcast_id = 2
+    board.configure(FRISBEE, watchdog_s=0.5)
+    serial_board.write_raw(_bcast_frame(60, set(), {2: BCAST_OUTPUTS[2]}))
+    wait_for_outputs(board, BCAST_OUTPUTS[2])  # (well within 0.5 s of simulated time)
+    # broadcasts for the others only: our watchdog is not fed, the outputs go safe
+    others = {1: BCAST_OUTPUTS[1], 3: BCAST_OUTPUTS[3]}
+    start = board.harness.state()["t_us"]
+    deadline = time.monotonic() + 20.0
+    seq = 61
+    while board.harness.state()["t_us"] - start < 1.0e6:
+        assert time.monotonic() < deadline, "simulated time does not advance"
+        serial_board.write_raw(_bcast_frame(seq, {2}, others))
+        seq += 1
+        wait_sim_time(board, 0.05)
+    assert board.read_outputs() == FRISBEE_SAFE
+    serial_board.write_raw(_bcast_frame(seq, {2}, {2: BCAST_OUTPUTS[2]}))
+    replies = _read_reply(board)
+    assert replies and isinstance(replies[0], BcastReplyMsg), replies
+    assert replies[0].status & BoardStatus.WATCHDOG_TRIPPED  # reported in the next reply
+    # (the outputs it applied may be safe again by now: the simulation runs unpaced)
+
+
+def test_broadcast_garbage_and_bad_sections_resync(board: SimavrBoard) -> None:
+    serial_board = board.serial
+    assert serial_board is not None
+    serial_board.bcast_id = 3
+    board.configure(FRISBEE, watchdog_s=0)
+    bad = encode_message(BcastMsg(70, (BcastSection(3, True, b"\x01\x02"),)))  # section too short
+    serial_board.write_raw(b"\x11\x22\x33" + bad + b"\x05\x99")  # garbage around a bad section
+    # the next frame after a delimiter that ends the garbage (the protocol's resync rule)
+    serial_board.write_raw(b"\x00" + _bcast_frame(71, {3}, {3: BCAST_OUTPUTS[3]}))
+    replies = _read_reply(board)
+    assert len(replies) == 1 and isinstance(replies[0], BcastReplyMsg), replies
+    assert replies[0].seq == 71
+    assert replies[0].status & BoardStatus.RX_ERRORS  # the bad frames were counted
+    assert board.read_outputs() == BCAST_OUTPUTS[3]
+
+
+def wait_for_outputs(board: SimavrBoard, want: dict[int, int], wall_limit_s: float = 20.0) -> None:
+    """Poll the pins until they show ``want``."""
+    deadline = time.monotonic() + wall_limit_s
+    while board.read_outputs() != want:
+        assert time.monotonic() < deadline, board.read_outputs()

@@ -194,17 +194,19 @@ def test_a_full_disk_with_policy_continue_runs_to_the_end_unrecorded(tmp_path: P
     assert "15000/15000 ticks" in output and "stopped: completed" in output, output
     # each write error of the full disk is shown once, not once per record
     assert output.count("No space left on device") < 10, output[-3000:]
-    # the summary says what was not recorded: from which tick, how many records
-    stopped = re.search(rf"recording: stopped at tick (\d+); ticks \1\.\.{last} are not recorded",
-                        output)  # fmt: skip
+    # the summary says what was not recorded: from which tick, at most how many records
+    stopped = re.search(
+        rf"recording: stopped at tick (\d+); ticks \1\.\.{last} are not recorded, or only in part",
+        output,
+    )
     assert stopped is not None, output
     first_lost = int(stopped.group(1))
-    assert re.search(rf"recording: \d+ records lost \(ticks {first_lost}\.\.{last}, ", output), (
-        output
-    )
-    # what reached the disk is readable: every tick before the first lost one
+    lost = rf"recording: at most \d+ records lost \(ticks {first_lost}\.\.{last}, "
+    assert re.search(lost, output), output
+    # what reached the disk is readable, and holds every tick before the first one reported
+    # not recorded (records not acknowledged by the recorder may be there too)
     ks = [m["k"] for topic, _, m in iter_messages(keep / "run.mcap") if topic == "/a/y"]
-    assert ks == list(range(len(ks))) and 10 < len(ks) <= first_lost, (len(ks), first_lost)
+    assert ks == list(range(len(ks))) and len(ks) >= first_lost > 10, (len(ks), first_lost)
 
 
 def test_recover_on_a_full_disk_says_so_and_leaves_no_file(tmp_path: Path) -> None:

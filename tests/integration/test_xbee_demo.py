@@ -104,3 +104,28 @@ def test_coordinator_unplugged_every_xbee_agent_goes_safe_then_it_reconnects(
         assert safe and safe[0]["k"] >= 18, (name, recording[f"/{name}/status"])
     states = [m["state"] for m in recording["/gateway/status"]]
     assert states[:3] == ["connected", "disconnected", "connected"], states
+
+
+def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    try:
+        locate_build("duemilanove")
+    except SimulatorError as exc:
+        pytest.skip(str(exc))
+    run = RunProcess(tmp_path, REPO / "graphs" / "xbee_swarm_broadcast.toml", "--duration", "2")
+    runs.append(run)
+    assert run.wait(300) == 0, run.output()
+    output = run.output()
+    assert "XBee gateway: READY" in output and "completed" in output, output
+    recording = read_recording(run.out)
+    for name, x0 in [("leader", 0.0), ("f1", -0.3), ("f5", -1.5)]:
+        ys = recording[f"/{name}/y"]
+        assert len(ys) == 100, name
+        assert ys[-1]["x"] > x0 + 0.05, (name, ys[-1])  # it drove forward: the loop is closed
+    totals = recording["/gateway/stats"][-1]["totals"]
+    assert totals["broadcast_frames"] >= 100  # one BCAST per tick (or a few more)
+    for name, robot in totals["robots"].items():
+        assert robot["sections"] >= 100, name  # its outputs went by broadcast, every tick
+        assert robot["tx_frames"] < 20, name  # by unicast only HELLO, CONFIG (and their retries)
+        assert robot["stale_replies"] >= 50, name  # reply_every = 5: most answers stale

@@ -39,7 +39,7 @@ def test_file_is_generated_from_the_current_codec() -> None:
 
 
 def test_document_header() -> None:
-    assert DOCUMENT["protocol_version"] == PROTOCOL_VERSION == 1
+    assert DOCUMENT["protocol_version"] == PROTOCOL_VERSION == 2
     names = [v["name"] for v in VECTORS]
     assert len(names) == len(set(names))
     types = {v["fields"]["type"] for v in VECTORS if v["valid"]}
@@ -54,6 +54,8 @@ def test_document_header() -> None:
         "ESTOP_REPLY",
         "SET_ID",
         "SET_ID_REPLY",
+        "BCAST",
+        "BCAST_REPLY",
         "ERROR",
     }
     assert {v["fields"]["drop_reason"] for v in VECTORS if not v["valid"]} >= {"crc", "too_long"}
@@ -99,3 +101,15 @@ def test_hand_worked_blimp_tick_layout() -> None:
     assert len(bytes.fromhex(vector["wire_hex"])) == 19
     reply = next(v for v in VECTORS if v["name"] == "tick_reply_blimp")
     assert len(bytes.fromhex(reply["wire_hex"])) == 13
+
+
+def test_hand_worked_broadcast() -> None:
+    # Section of id 2: 02, hdr 0x83 (reply | 3 B), levels of D4/D7/D8/D12 = D7|D12 -> bits 1, 3
+    # = 0x0A, PWM5 = 200 (C8), PWM6 = 0: the Frisbee's 5 B.
+    vector = next(v for v in VECTORS if v["name"] == "bcast_three_frisbees")
+    payload = bytes.fromhex(vector["payload_hex"])
+    assert payload[:2] == bytes((0x06, 40))
+    assert payload[2:] == bytes.fromhex("0103050a14" + "02830ac800" + "03030fff01")
+    config = next(v for v in VECTORS if v["name"] == "config_frisbee_bcast_id_2")
+    assert bytes.fromhex(config["payload_hex"])[-1] == 2  # the trailing broadcast id
+    assert (len(bytes.fromhex(config["payload_hex"])) - 4) % 4 == 1  # 2 + 4n + 1 body bytes

@@ -14,7 +14,14 @@ from hilswarm.agents.errors import (
     BoardTimeoutError,
     ProtocolError,
 )
-from hilswarm.agents.link.board import BoardInfo, BoardStatus, ErrorCode, PinConfig, PinMode
+from hilswarm.agents.link.board import (
+    PROTOCOL_VERSION,
+    BoardInfo,
+    BoardStatus,
+    ErrorCode,
+    PinConfig,
+    PinMode,
+)
 from hilswarm.agents.link.codec import SetIdReplyMsg
 from hilswarm.agents.link.serial_board import (
     LinkEvent,
@@ -73,7 +80,7 @@ def test_handshake_configure_exchange_over_pty(pty_server: PtyWireServer, sim: S
     events: list[LinkEvent] = []
     with fast(pty_server.url + "?board_id=3", on_event=events.append) as board:
         info = board.info
-        assert info.protocol_version == 1
+        assert info.protocol_version == PROTOCOL_VERSION == 2
         assert info.board_id == 3
         assert len(info.capabilities) == 20
         assert board.last_status & BoardStatus.RESET
@@ -117,15 +124,29 @@ class FutureBoard(SimBoard):
     """A board speaking a protocol version this host does not know."""
 
     def open(self) -> BoardInfo:
-        return dataclasses.replace(super().open(), protocol_version=2)
+        return dataclasses.replace(super().open(), protocol_version=3)
+
+
+class ProtocolOneBoard(SimBoard):
+    """A board with protocol-1 firmware (no packed broadcast)."""
+
+    def open(self) -> BoardInfo:
+        return dataclasses.replace(super().open(), protocol_version=1)
 
 
 def test_protocol_version_mismatch() -> None:
     with PtyWireServer(FutureBoard("uno", dt=0.01)) as server:
         board = fast(server.url)
-        with pytest.raises(ProtocolError, match=r"protocol version 2.*version 1"):
+        with pytest.raises(ProtocolError, match=r"protocol version 3.*versions \[1, 2\]"):
             board.open()
         assert not board.is_open
+
+
+def test_a_protocol_1_board_still_works() -> None:
+    with PtyWireServer(ProtocolOneBoard("uno", dt=0.01)) as server, fast(server.url) as board:
+        assert board.info.protocol_version == 1
+        board.configure(BLIMP, watchdog_s=0.5)  # a CONFIG without broadcast id: protocol 1
+        assert board.exchange({5: 10}, [14]).samples.keys() == {14}
 
 
 def test_board_id_mismatch(pty_server: PtyWireServer) -> None:

@@ -337,6 +337,29 @@ def test_a_recorder_that_keeps_dying_is_given_up_and_the_loss_counted(
     assert y_count(path) == 50
 
 
+def test_the_loss_is_counted_from_the_first_tick_a_batch_can_hold(
+    tmp_path: Path, experiment: Experiment
+) -> None:
+    """The manager hands over a batch at tick 60 whose records it gathered since tick 50: a
+    recording given up reports ticks 50.. as not recorded, not 60.. (what it holds before
+    tick 50 is on disk)."""
+    path = tmp_path / "run.mcap"
+    recorder = RecorderProcess(path, experiment, log_time_ns=T0, max_restarts=0)
+    try:
+        recorder.wait_ready()
+        recorder.write(frames_of_ticks(experiment, range(0, 50)), count=200, tick=50)
+        assert wait_until(lambda: recorder.queued_bytes == 0)  # acknowledged: on disk
+        os.killpg(recorder.process.pid, signal.SIGKILL)
+        assert wait_until(lambda: bool(recorder.failed))
+        recorder.write(frames_of_ticks(experiment, range(50, 60)), count=40, tick=60, first_tick=50)
+    finally:
+        assert recorder.close() == -signal.SIGKILL
+    report = recorder.report()
+    assert report.lost_records == 40 and report.lost_ticks == (50, 60)
+    assert report.stopped_at_tick == 50
+    assert leader_ticks(path) == list(range(50))
+
+
 def test_a_staged_recording_is_published_or_removed(tmp_path: Path, experiment: Experiment):
     kept = tmp_path / "kept.mcap"
     kept.write_bytes(b"an older recording")

@@ -9,8 +9,10 @@ from hilswarm.agents.link.board import PinConfig, PinMode
 from hilswarm.agents.xbee.air import AirParams
 from hilswarm.agents.xbee.budget import (
     RobotTraffic,
+    broadcast_budget,
     budget_messages,
     gateway_budget,
+    section_size,
     tick_frame_sizes,
 )
 from hilswarm.orchestrator.checks import check_file
@@ -95,3 +97,49 @@ def test_bad_gateway_table(tmp_path: Path) -> None:
     assert any(
         p.key == "gateway.api_mode" and "3 is not one of 1, 2" in p.message for p in problems
     )
+
+
+def test_broadcast_budget_of_sixteen_frisbees_at_50_hz() -> None:
+    request, reply = tick_frame_sizes(FRISBEE)
+    assert section_size(FRISBEE) == 3  # levels of 4 DIGITAL_OUT in one byte, 2 PWM duties
+    robots = [RobotTraffic(f"r{i}", request, reply, 3, 5) for i in range(16)]
+    budget = broadcast_budget(robots, rate_hz=50.0)
+    p = AirParams()
+    assert budget.frames == 1 and budget.replies == 4  # one 86 B frame; ceil(16 / 5) replies
+    assert budget.air_s == pytest.approx(p.mean_broadcast_s(86) + 4 * p.mean_unicast_s(13))
+    assert budget.uart_out_s == pytest.approx((15 + 86) * 10 / 115200)  # no TX Status back
+    assert budget.uart_in_s == pytest.approx(4 * (15 + 13) * 10 / 115200)
+    errors, warnings = budget_messages(budget)
+    assert not errors and len(warnings) == 1 and "by packed broadcast" in warnings[0]
+    assert budget.fractions()["air"] == pytest.approx(0.92, abs=0.01)
+    # every robot answering every tick does not fit; the message says which reply_every does
+    robots = [RobotTraffic(f"r{i}", request, reply, 3, 1) for i in range(16)]
+    errors, _ = budget_messages(broadcast_budget(robots, rate_hz=50.0))
+    assert errors and "a larger reply_every with reply_every = 5" in errors[0]
+
+
+def test_unicast_overflow_suggests_the_packed_broadcast() -> None:
+    request, reply = tick_frame_sizes(FRISBEE)
+    robots = [RobotTraffic(f"r{i}", request, reply, 3) for i in range(16)]
+    errors, _ = budget_messages(gateway_budget(robots, rate_hz=50.0))
+    assert all('[gateway] mode = "broadcast" with reply_every = 5' in e for e in errors), errors
+
+
+def test_check_broadcast_demo_and_reply_every_rules(tmp_path: Path) -> None:
+    assert check_file(REPO / "graphs" / "xbee_swarm_broadcast.toml").ok
+    text = (REPO / "graphs" / "xbee_swarm.toml").read_text()
+    path = tmp_path / "decimated_unicast.toml"
+    path.write_text(text.replace('vehicle = "frisbee"', 'vehicle = "frisbee"\nreply_every = 3'))
+    report = check_file(path)
+    keys = sorted(p.key for p in report.problems)
+    assert keys == [f"agents.{n}.reply_every" for n in ("f1", "f2", "f3", "f4", "f5", "leader")]
+    assert 'needs [gateway] mode = "broadcast"' in report.problems[0].message
+    path = tmp_path / "not_xbee.toml"
+    path.write_text(
+        (REPO / "graphs" / "lead_follow.toml")
+        .read_text()
+        .replace("[agents.leader]", "[agents.leader]\nreply_every = 2", 1)
+    )
+    report = check_file(path)
+    assert [p.key for p in report.problems] == ["agents.leader.reply_every"]
+    assert "only for xbee:// links" in report.problems[0].message

@@ -15,7 +15,7 @@ import pytest
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.errors import BoardTimeoutError
-from hilswarm.agents.link.board import PinConfig, PinMode
+from hilswarm.agents.link.board import PROTOCOL_VERSION, PinConfig, PinMode
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.xbee.api_frames import FrameFamily
 from hilswarm.agents.xbee.config import GatewayConfig
@@ -89,7 +89,7 @@ def test_unicast_round_trips_through_the_gateway(swarm: tuple) -> None:
     assert gateway.family == coordinator.family
     for name, board in boards.items():
         info = board.open()
-        assert info.protocol_version == 1
+        assert info.protocol_version == PROTOCOL_VERSION
         board.configure(PINS, watchdog_s=0.5)
         sims[name].set_analog_input(14, 2.5)
     for k in range(20):
