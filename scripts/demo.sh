@@ -10,6 +10,8 @@ name=$(basename "$experiment" .toml)
 bash scripts/setup.sh
 mkdir -p out
 .venv/bin/hilswarm check "$experiment"
-.venv/bin/hilswarm run "$experiment" --out "out/$name.mcap"
+# --force: the demo replaces its own recording of an earlier demo run (hilswarm run never does
+# that on its own)
+.venv/bin/hilswarm run "$experiment" --out "out/$name.mcap" --force
 .venv/bin/hilswarm plot "out/$name.mcap" --out "out/$name"
 echo "== recording: out/$name.mcap   plots: out/$name/"

@@ -194,15 +194,6 @@ def test_a_link_that_does_not_come_back_in_time_makes_the_agent_safe(rigs: list[
     assert rig.close() == 0
 
 
-@pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    """Runs started by a test; every one is killed (with its agents) afterwards."""
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
-
-
 @pytest.mark.usefixtures("firmware_built")
 def test_a_stalled_simavr_board_does_not_end_a_realtime_run(
     tmp_path: Path, runs: list[RunProcess]

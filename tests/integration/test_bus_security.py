@@ -49,14 +49,6 @@ N_TICKS = 1000
 
 
 @pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
-
-
-@pytest.fixture
 def sessions() -> Iterator[list[zenoh.Session]]:
     opened: list[zenoh.Session] = []
     yield opened

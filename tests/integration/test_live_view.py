@@ -9,10 +9,8 @@ import struct
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
-import pytest
 import websockets
 from swarm_harness import REPO, RunProcess, run_env, wait_for
 
@@ -23,14 +21,6 @@ SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
 WANTED = ("/leader/y", "/leader/u", "/leader/x_hat", "/f1/y", "/orchestrator/ticks", "/leader/pose")
 _MESSAGE_DATA = 0x01
 _URL = re.compile(rb"^(ws://127\.0\.0\.1:\d+)$", re.MULTILINE)
-
-
-@pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
 
 
 async def watch(url: str, deadline_s: float) -> tuple[dict[str, dict], dict[str, list[bytes]]]:

@@ -30,16 +30,6 @@ DEMO = REPO / "graphs" / "lead_follow_mocap.toml"
 RUN_TIMEOUT_S = 240
 
 
-@pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    started: list[RunProcess] = []
-    try:
-        yield started
-    finally:
-        for run in started:
-            run.cleanup()
-
-
 def variant(tmp_path: Path, **replace: str) -> Path:
     """The demo file with lines replaced (old line -> new text)."""
     text = DEMO.read_text()

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import re
 import subprocess
-from collections.abc import Iterator
 from importlib import metadata as importlib_metadata
 from pathlib import Path
 
@@ -18,14 +17,6 @@ from swarm_harness import REPO, RunProcess, read_recording
 pytestmark = pytest.mark.integration
 
 AGENTS = ("leader", "f1", "f2")
-
-
-@pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
 
 
 def head_revision() -> str:

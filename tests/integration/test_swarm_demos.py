@@ -19,14 +19,6 @@ pytestmark = pytest.mark.integration
 GRAPHS = REPO / "graphs"
 
 
-@pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
-
-
 @pytest.fixture(scope="module")
 def lead_follow_recording(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
     """The recording of ``graphs/lead_follow.toml`` (run once for the tests that read it)."""

@@ -37,15 +37,6 @@ CLI = (sys.executable, "-m", "hilswarm.orchestrator.cli")
 
 
 @pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    """Runs started by a test; every one is killed (with its agents) afterwards."""
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
-
-
-@pytest.fixture
 def spies() -> Iterator[list[Spy]]:
     opened: list[Spy] = []
     yield opened

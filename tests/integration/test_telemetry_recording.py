@@ -28,15 +28,6 @@ RATE_HZ = 20.0  # graphs/lead_follow.toml
 
 
 @pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    """Runs started by a test; every one is killed (with its agents) afterwards."""
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
-
-
-@pytest.fixture
 def spies() -> Iterator[list[Spy]]:
     opened: list[Spy] = []
     yield opened

@@ -4,7 +4,6 @@ the real firmware in simavr behind its simulated radio, through the gateway proc
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -15,14 +14,7 @@ from swarm_harness import REPO, RunProcess, connect_spy, read_recording, wait_fo
 pytestmark = [pytest.mark.integration, pytest.mark.firmware, pytest.mark.slow]
 
 
-@pytest.fixture
-def runs() -> Iterator[list[RunProcess]]:
-    started: list[RunProcess] = []
-    yield started
-    for run in started:
-        run.cleanup()
-
-
+@pytest.mark.usefixtures("firmware_built")  # the robot behind the radio runs it
 def test_xbee_swarm_demo_runs_and_every_robot_moves(runs: list[RunProcess], tmp_path: Path) -> None:
     try:
         locate_build("duemilanove")
@@ -106,6 +98,7 @@ def test_coordinator_unplugged_every_xbee_agent_goes_safe_then_it_reconnects(
     assert states[:3] == ["connected", "disconnected", "connected"], states
 
 
+@pytest.mark.usefixtures("firmware_built")  # the robot behind the radio runs it
 def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
     runs: list[RunProcess], tmp_path: Path
 ) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from hilswarm.agents.errors import WireFormatError
 from hilswarm.agents.link.board import BoardStatus, PinMode
@@ -22,7 +24,9 @@ from hilswarm.agents.link.codec import (
     parse_payload,
 )
 from hilswarm.agents.xbee.budget import bcast_frame_sizes
+from hilswarm.agents.xbee.gateway_process import GatewayPlan, plan_for
 from hilswarm.agents.xbee.packer import Broadcast, BroadcastPacker, ToAgent, Unicast
+from hilswarm.orchestrator.experiment import load_experiment
 
 FRISBEE = (
     ConfigEntry(4, PinMode.DIGITAL_OUT),
@@ -178,3 +182,11 @@ def test_a_straggler_waits_at_most_the_gathering_time() -> None:
     assert packer.poll(1.025) == []
     (frame,) = [a for a in packer.poll(1.031) if isinstance(a, Broadcast)]
     assert frame.names == ("r00",)
+
+
+def test_the_broadcast_demo_plans_its_gateway_with_mode_rate_and_reply_every() -> None:
+    demo = Path(__file__).resolve().parents[2] / "graphs" / "xbee_swarm_broadcast.toml"
+    plan = plan_for(load_experiment(demo))
+    assert plan is not None and GatewayPlan.from_json(plan.to_json()) == plan
+    assert plan.config["mode"] == "broadcast" and plan.rate_hz == 50.0
+    assert set(plan.reply_every.values()) == {5} and len(plan.reply_every) == 6
