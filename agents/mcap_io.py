@@ -36,6 +36,7 @@ import json
 import logging
 import math
 import os
+import sys
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -707,6 +708,10 @@ class _StrictReads:
         self._file = file
 
     def read(self, size: int = -1) -> bytes:
+        if size is not None and size > sys.maxsize:
+            # A chunk the writer had begun when it was killed: foxglove-sdk's (mcap-rust) writer
+            # puts all-ones sizes in a chunk's header until the chunk is finished.
+            raise EndOfFile()
         data = self._file.read(size)
         if size is not None and size > 0 and len(data) < size:
             raise EndOfFile()
@@ -726,7 +731,7 @@ def _iter_records(path: str | os.PathLike[str]) -> Iterator[Any]:
             except EndOfFile:
                 logger.warning("%s is truncated: read up to the last complete record", path)
                 return
-            except (McapError, ValueError, OSError) as exc:
+            except (McapError, ValueError, OSError, OverflowError) as exc:
                 logger.warning("%s is damaged (%s): read up to the last good record", path, exc)
                 return
             yield record

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 from hilswarm.agents.errors import BoardConnectionError, HilswarmError, PinError
 from hilswarm.agents.link.board import (
+    PROTOCOL_VERSION,
     Board,
     BoardInfo,
     Capability,
@@ -274,7 +275,7 @@ def test_attach_configures_and_exchange_batches_everything() -> None:
     pm.assign(12, device="sw", binder="sw.pin", mode=PinMode.DIGITAL_IN_PULLUP)
     board = CountingSimBoard(dt=0.01)
     info = pm.attach(board, watchdog_s=0.2)
-    assert info.protocol_version == 1
+    assert info.protocol_version == PROTOCOL_VERSION  # the simulated board speaks the newest
     assert board.configuration == {c.pin: c for c in pm.pin_configs()}
     assert board.watchdog_s == pytest.approx(0.2)
     board.set_analog_input(14, 2.5)

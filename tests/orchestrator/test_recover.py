@@ -68,6 +68,8 @@ def messages_in_complete_chunks(data: bytes) -> int:
             offset += name_length
             records_length = int.from_bytes(body[offset : offset + 8], "little")
             offset += 8
+            if offset + records_length > len(body):
+                break  # a chunk its writer had begun (all-ones sizes until it is finished)
             records = body[offset : offset + records_length]
             if compression == "zstd":
                 records = zstandard.ZstdDecompressor().decompress(
@@ -178,6 +180,33 @@ def test_a_cut_inside_a_chunk_drops_only_that_chunk(killed_recording: Path, tmp_
     result = recover(cut)
     assert result.destination == default_destination(cut) == tmp_path / "cut.recovered.mcap"
     assert result.messages == expected
+
+
+#: A Chunk record as foxglove-sdk's (mcap-rust) writer leaves it when killed while the chunk is
+#: open: its header holds all-ones sizes until the chunk is finished.
+UNFINISHED_CHUNK_BODY = (
+    bytes(16)  # message start and end times
+    + b"\xff" * 8  # uncompressed size
+    + b"\xff" * 4  # uncompressed CRC
+    + len(b"zstd").to_bytes(4, "little")
+    + b"zstd"
+    + b"\xff" * 8  # records length
+    + bytes(64)  # the compressed records written so far
+)
+
+
+def test_a_chunk_the_writer_had_begun_is_dropped_without_a_traceback(
+    killed_recording: Path, tmp_path: Path
+) -> None:
+    data = killed_recording.read_bytes()
+    start, _ = chunk_offsets(data)[5]
+    begun = tmp_path / "begun.mcap"
+    record = b"\x06" + len(UNFINISHED_CHUNK_BODY).to_bytes(8, "little") + UNFINISHED_CHUNK_BODY
+    begun.write_bytes(data[:start] + record)
+    expected = messages_in_complete_chunks(data[:start])
+    assert expected > 0 and messages_in_complete_chunks(begun.read_bytes()) == expected
+    assert recover(begun).messages == expected
+    assert main(["recover", str(begun), "--in-place"]) == 0
 
 
 def test_cli_recover_in_place_and_output(
