@@ -25,8 +25,9 @@ none) — what the simulated cameras see.
 
 Per tick it appends to the vehicle's telemetry channel ``mocap`` (:data:`TELEMETRY_FIELDS`):
 frame number, frame time [s], latency frame time -> this sense [s] (same host only), frames
-occluded, the pose as position + quaternion (for ``/<agent>/pose``) and the filter's
-innovation.
+occluded, the pose as position + quaternion (for ``/<agent>/pose``), the filter's innovation,
+and the delivery frame time -> the pose's arrival at this agent [s] (the rest of the latency is
+the wait for the tick).
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ TELEMETRY_FIELDS: tuple[str, ...] = (
     "innovation_y",
     "innovation_z",
     "innovation_yaw",
+    "delivery_s",
 )
 CHANNEL = "mocap"
 _NAN_POSE = np.full(6, np.nan)
@@ -278,7 +280,7 @@ class MocapPoseSource:
                     self._on_lost(reason)
             row[:] = np.nan
             return _NAN_POSE.copy()
-        latest = self._latest[0]  # type: ignore[index]  # lost() checked it
+        latest, arrived = self._latest  # type: ignore[misc]  # lost() checked it
         latency = latest.latency_s(self._clock())
         if self.keep_latencies:
             self.latencies.append(latency)
@@ -297,6 +299,7 @@ class MocapPoseSource:
             qz,
             qw,
             *latest.innovation.tolist(),
+            latest.latency_s(arrived),
         )
         return p.copy()
 

@@ -67,6 +67,8 @@ def test_the_demo_runs_with_poses_through_the_real_client(
         latency = np.array([r["latency_s"] for r in rows])
         assert np.all(np.isfinite(latency)) and np.all(latency >= 0), agent
         assert np.median(latency) < 0.1, agent  # frame time -> sense, same host
+        delivery = np.array([r["delivery_s"] for r in rows])  # frame time -> arrival here
+        assert np.all(delivery >= 0) and np.all(delivery <= latency), agent
     # The leader drove towards its first waypoint (1, 0): the pose loop closed.
     assert recording["/leader/y"][-1]["values"][0] > 0.2
     # /<agent>/pose with Foxglove's well-known schema (the 3D panel's).
