@@ -392,13 +392,15 @@ class Gateway:
             else:
                 self._send_broadcast(action)
 
+    def _tx_frame(self, frame_id: int, address: int, data: bytes) -> ApiFrame:
+        """The transmit request of the radio's frame family (frame id 0: no TX Status)."""
+        if self.family == FrameFamily.IEEE_802_15_4:
+            return Tx64Request(frame_id, address, data)
+        return TransmitRequest(frame_id, address, data)
+
     def _send_broadcast(self, action: Broadcast) -> None:
         """One BCAST frame to every robot: no ACK, no MAC retry, no TX Status (frame id 0)."""
-        frame: ApiFrame = (
-            Tx64Request(0, BROADCAST_64, action.data)
-            if self.family == FrameFamily.IEEE_802_15_4
-            else TransmitRequest(0, BROADCAST_64, action.data)
-        )
+        frame = self._tx_frame(0, BROADCAST_64, action.data)
         try:
             self._write_frame(frame)
         except (serial.SerialException, OSError) as exc:
@@ -418,11 +420,7 @@ class Gateway:
             chunk = data[start : start + self._max_payload]
             frame_id = self._next_frame_id()
             self._pending[frame_id] = name
-            frame: ApiFrame = (
-                Tx64Request(frame_id, address, chunk)
-                if self.family == FrameFamily.IEEE_802_15_4
-                else TransmitRequest(frame_id, address, chunk)
-            )
+            frame = self._tx_frame(frame_id, address, chunk)
             try:
                 self._write_frame(frame)
             except (serial.SerialException, OSError) as exc:
