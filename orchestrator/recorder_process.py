@@ -446,14 +446,14 @@ class RecorderProcess:
         self._changed.notify_all()
 
     def _count_lost(self, count: int, first_tick: int, tick: int) -> None:
-        """``count`` records of ticks ``first_tick..tick`` are lost (-1: unknown ticks)."""
+        """``count`` records of ticks ``first_tick..tick`` are lost (``tick`` -1: unknown ticks;
+        ``first_tick`` as :meth:`write` settles it: known whenever ``tick`` is)."""
         if not count:
             return
         self._lost_records += count
         if tick >= 0:
-            low = first_tick if first_tick >= 0 else tick
-            first, last = self._lost_ticks or (low, tick)
-            self._lost_ticks = (min(first, low), max(last, tick))
+            first, last = self._lost_ticks or (first_tick, tick)
+            self._lost_ticks = (min(first, first_tick), max(last, tick))
 
     # -- writing -----------------------------------------------------------------------------
 
