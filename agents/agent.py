@@ -48,10 +48,16 @@ Status messages (JSON on ``agent/<name>/status``, recorded on ``/<agent>/status`
 counters: ``malformed`` (messages that could not be decoded, by key: ``tick``, ``y``,
 ``control``, ``set``, ``mocap``: body poses of a mocap pose source), ``dropped`` (well-formed
 messages rejected by the tick engine, by reason: ``tick_ahead``, ``tick_past``, ``tick_time``,
-``tick_mode``, ``tick_missing``, ``y_ahead``, ``y_duplicate``, ``y_size``, and ``stale``
+``tick_mode``, ``tick_missing``, ``y_ahead``, ``y_duplicate``, ``y_size``, ``schedule_dt``,
+``schedule_time``, and ``stale``
 realtime ticks skipped), ``skipped`` (ticks this agent missed in total) and ``link_faults``
-(board link faults ridden out). A status of kind ``inputs`` is published when these counters
-change (at most once per :data:`COUNTERS_PERIOD_S`).
+(board link faults ridden out). A self-clocked realtime agent (it keeps the manager's schedule
+itself, see :class:`~hilswarm.agents.bus.ScheduleMessage`) adds ``inputs_missing``
+({neighbour: [tick, ...]}): the ticks since its previous status that used no data for that
+neighbour (its ``y_{k-1}`` was not in at the tick's due time) although the manager had not
+reported it lost. A status of kind ``inputs`` is published when these counters change or
+such ticks are pending (at most once per :data:`COUNTERS_PERIOD_S`), and every status (the
+last one of the run included) carries the ticks noted since the previous one.
 """
 
 from __future__ import annotations
@@ -290,7 +296,10 @@ class Agent:
         with self._engine_lock:
             dropped = dict(self.engine.counters())
             malformed = {key: n for key, n in self.malformed.items() if n}
+            inputs_missing = self.engine.take_inputs_missing()
         fields: dict[str, Any] = {}
+        if inputs_missing:
+            fields["inputs_missing"] = inputs_missing
         if malformed:
             fields["malformed"] = malformed
         if dropped:
@@ -332,7 +341,8 @@ class Agent:
                 self.skipped,
                 self.link_faults,
             )
-        if snapshot != self._counters_published and any(snapshot):
+            pending = bool(self.engine.inputs_missing)
+        if pending or (snapshot != self._counters_published and any(snapshot)):
             self._counters_published = snapshot
             self.publish_status({"kind": "inputs"}, detail="input and fault counters")
 
@@ -618,27 +628,44 @@ class Agent:
             self._count_malformed("y")
             return
         values.flags.writeable = False  # shared with the controller: read-only, no copy
+        arrived = self._clock()
         with self._engine_lock:
-            ready = self.engine.on_neighbour(name, k, values)
+            ready = self.engine.on_neighbour(name, k, values, arrived)
         if ready:
             self._wake()
 
     def receive_tick(self, payload: bytes, *, arrived: float | None = None) -> None:
-        """A tick message (bus callback): into the engine; wake the worker if a tick is ready.
+        """A tick or schedule message (bus callback): into the engine; wake the worker if a
+        tick is ready (or, for a schedule, so it waits for the next tick's due time).
 
         Args:
-            payload: the encoded :class:`~hilswarm.agents.bus.TickMessage`; a malformed one is
-                counted (``malformed["tick"]``) and dropped.
+            payload: the encoded :class:`~hilswarm.agents.bus.TickMessage` or
+                :class:`~hilswarm.agents.bus.ScheduleMessage`; a malformed one is counted
+                (``malformed["tick"]``) and dropped.
             arrived: when it arrived [s, this agent's clock]; default: now.
         """
         try:
-            tick = bus.decode_tick(payload)
+            if bus.is_schedule(payload):
+                schedule = bus.decode_schedule(payload)
+                tick = None
+            else:
+                tick = bus.decode_tick(payload)
         except bus.BusMessageError:
             self._count_malformed("tick")
             return
         arrived = self._clock() if arrived is None else arrived
         with self._engine_lock:
-            accepted = self.engine.on_tick(tick.k, tick.t, tick.missing, tick.realtime, arrived)
+            if tick is None:
+                accepted = self.engine.on_schedule(
+                    schedule.first,
+                    schedule.last,
+                    schedule.t0,
+                    schedule.dt,
+                    missing=schedule.missing,
+                    arrived=arrived,
+                )
+            else:
+                accepted = self.engine.on_tick(tick.k, tick.t, tick.missing, tick.realtime, arrived)
         if accepted:
             self._wake()
 
@@ -673,10 +700,13 @@ class Agent:
 
     def _work_loop(self) -> None:
         """The worker: ticks, then commands between ticks, then the telemetry batch."""
-        get = self._work.get
+        get, engine, lock, clock = self._work.get, self.engine, self._engine_lock, self._clock
         try:
             while True:
-                timeout = self._telemetry_due - self._clock()
+                with lock:
+                    due = engine.next_due()  # self-clocked: the next tick's deadline
+                timeout = self._telemetry_due if due is None else min(due, self._telemetry_due)
+                timeout -= clock()
                 try:
                     item = get(timeout=min(max(timeout, 0.0), 1.0))
                 except queue.Empty:
@@ -698,11 +728,12 @@ class Agent:
 
     def _run_ready_ticks(self) -> None:
         """Run every tick the engine hands out (released, inputs in)."""
-        engine, lock, lifecycle = self.engine, self._engine_lock, self.lifecycle
+        engine, lock, lifecycle, clock = self.engine, self._engine_lock, self.lifecycle, self._clock
         while not self._quitting.is_set():
             gather = self._y is not None and lifecycle.state_id in ("armed", "running")
+            now = clock()
             with lock:
-                tick = engine.take(gather=gather)
+                tick = engine.take(gather=gather, now=now)
             if tick is None:
                 return
             self._run_tick(tick)

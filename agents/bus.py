@@ -8,7 +8,8 @@ made fresh by every ``hilswarm run``, so nothing of another run, even of the sam
 is ever consumed):
 
 * ``tick`` — the instance manager's tick messages (:func:`encode_tick`), each releasing the
-  ticks up to its ``k`` (:class:`TickMessage`).
+  ticks up to its ``k`` (:class:`TickMessage`), or, in a self-clocked realtime run, its
+  schedules (:func:`encode_schedule`, :class:`ScheduleMessage`).
 * ``control`` — swarm-wide commands (:class:`ControlCommand`: stop, estop, pause, resume),
   put by the instance manager only.
 * ``manager/request`` — an operator's command (``hilswarm stop``), same layout as ``control``;
@@ -293,6 +294,9 @@ _VECTOR_HEADER = struct.Struct("<qd")
 _TICK_HEADER = struct.Struct("<qdBH")
 #: Flag bits of a tick message.
 TICK_REALTIME = 0x01
+#: Flag bit of a schedule message (:class:`ScheduleMessage`, sent on the tick key).
+TICK_SCHEDULE = 0x02
+_SCHEDULE_TAIL = struct.Struct("<qdd")
 _REPORT_HEADER = struct.Struct("<ddddHHHH")
 
 
@@ -371,10 +375,79 @@ def decode_tick(payload: bytes | bytearray | memoryview) -> TickMessage:
             f"tick message of {size} bytes: expected at least {_TICK_HEADER.size}"
         )
     k, t, flags, count = _TICK_HEADER.unpack_from(payload)
+    if flags & TICK_SCHEDULE:
+        raise BusMessageError("a schedule message, not a tick message")
     if size != _TICK_HEADER.size + 2 * count:
         raise BusMessageError(f"tick message of {size} bytes does not hold {count} indices")
     missing = struct.unpack_from(f"<{count}H", payload, _TICK_HEADER.size) if count else ()
     return TickMessage(k, t, tuple(missing), realtime=bool(flags & TICK_REALTIME))
+
+
+@dataclass(frozen=True)
+class ScheduleMessage:
+    """The instance manager's schedule of a self-clocked realtime run (on the tick key).
+
+    Agents on the manager's host keep the schedule themselves instead of waiting for one tick
+    message per period: tick ``j`` (``first <= j <= last``) is due at ``t0 + j * dt`` on
+    ``CLOCK_MONOTONIC``, the system-wide clock of ``time.monotonic`` and ``time.perf_counter``
+    on Linux (so the manager's and the agents' readings are the same clock). The manager sends
+    one at the start and again whenever the schedule changes: a pause ends it at ``last``, a
+    resume re-anchors it (new ``t0`` and ``first``), and a change of ``missing`` (an agent
+    lost) repeats it with the same anchor.
+
+    Attributes:
+        first: the first tick of this schedule (>= 0).
+        last: its last tick (>= ``first``).
+        t0: when tick 0 would be due [s, CLOCK_MONOTONIC] (tick ``j`` at ``t0 + j * dt``).
+        dt: control period [s] (the experiment's).
+        missing: indices (experiment order) of agents lost: their outputs are not coming.
+    """
+
+    first: int
+    last: int
+    t0: float
+    dt: float
+    missing: tuple[int, ...] = ()
+
+
+def is_schedule(payload: bytes | bytearray | memoryview) -> bool:
+    """Is this message on the tick key a schedule (:func:`encode_schedule`)?"""
+    return len(payload) > 16 and bool(payload[16] & TICK_SCHEDULE)
+
+
+def encode_schedule(message: ScheduleMessage) -> bytes:
+    """Encode a :class:`ScheduleMessage`.
+
+    Layout (little-endian): the tick message's (int64 ``first``, float64 ``first * dt`` [s],
+    uint8 flags ``TICK_REALTIME | TICK_SCHEDULE``, uint16 count, ``count`` uint16 agent
+    indices), then int64 ``last``, float64 ``t0`` [s], float64 ``dt`` [s].
+    """
+    missing = message.missing
+    return (
+        _TICK_HEADER.pack(
+            message.first,
+            message.first * message.dt,
+            TICK_REALTIME | TICK_SCHEDULE,
+            len(missing),
+        )
+        + struct.pack(f"<{len(missing)}H", *missing)
+        + _SCHEDULE_TAIL.pack(message.last, message.t0, message.dt)
+    )
+
+
+def decode_schedule(payload: bytes | bytearray | memoryview) -> ScheduleMessage:
+    """Decode :func:`encode_schedule`'s bytes."""
+    size = len(payload)
+    if size < _TICK_HEADER.size + _SCHEDULE_TAIL.size:
+        raise BusMessageError(f"schedule message of {size} bytes: too short")
+    first, _t, flags, count = _TICK_HEADER.unpack_from(payload)
+    if not flags & TICK_SCHEDULE:
+        raise BusMessageError("a tick message, not a schedule message")
+    if size != _TICK_HEADER.size + 2 * count + _SCHEDULE_TAIL.size:
+        raise BusMessageError(f"schedule message of {size} bytes does not hold {count} indices")
+    missing = struct.unpack_from(f"<{count}H", payload, _TICK_HEADER.size) if count else ()
+    last, t0, dt = _SCHEDULE_TAIL.unpack_from(payload, _TICK_HEADER.size + 2 * count)
+    return ScheduleMessage(first, last, t0, dt, tuple(missing))
 
 
 @dataclass(frozen=True)

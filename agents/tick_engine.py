@@ -39,6 +39,26 @@ Contract (``k``: tick index; ``window``: the experiment's ``lockstep_window`` [t
   every other neighbour's ``y_{k-1}`` is in. Realtime after skipped ticks may use the newest
   older output of a neighbour.
 
+* **Self-clocked realtime** (the manager sends a schedule instead of tick messages, see
+  :class:`~hilswarm.agents.bus.ScheduleMessage`). Tick ``j`` (``first <= j <= last``) is due at
+  ``t0 + j * dt``; :meth:`TickEngine.take` is given the time (``now``) and hands out the newest
+  due tick (the ticks in between are skipped, as above); :meth:`TickEngine.next_due` says when
+  the next one is due, so the worker waits for that deadline. The run's mode is fixed by its
+  first message: a schedule in a run of tick messages, or a tick message in a self-clocked
+  run, is rejected (``tick_mode``). A schedule is accepted only if its ``dt`` is the
+  experiment's (``schedule_dt``) and its anchor is plausible (``schedule_time``): the next
+  tick it makes due lies at most :data:`SCHEDULE_AHEAD_PERIODS` ahead (so it cannot freeze the
+  agent), and the tick due when it arrived lies no further ahead than the periods elapsed
+  since this agent's newest tick was due, plus :data:`REALTIME_SLACK_TICKS` (the run's first
+  schedule: its ``first`` within the window, and the tick due at arrival at most
+  :data:`SCHEDULE_START_LAG_PERIODS` past ``first``), so it cannot race the agent ahead of the
+  schedule. A schedule with the anchor in force (same ``t0`` and ``first``) only changes
+  ``last`` (a pause) and the lost agents. **No wait for inputs:** a self-clocked tick runs at
+  its due time with the neighbours' ``y_{k-1}`` that are in; one that is not counts as no
+  data (``None``) and is noted in :attr:`TickEngine.inputs_missing` (unless the manager
+  reported that neighbour lost), which the agent publishes, so the record says which inputs
+  each tick used.
+
 Counters (:attr:`TickEngine.dropped`, :attr:`TickEngine.stale`) only grow; the agent adds the
 malformed-message counts of its decoders and publishes both in its status messages.
 """
@@ -64,8 +84,14 @@ MAX_NEIGHBOUR_HISTORY = 2048
 #: Realtime: neighbour outputs accepted past the newest released tick [ticks] (a neighbour's
 #: answer may overtake the tick message on its way to this agent).
 REALTIME_Y_AHEAD = 2
-#: Relative tolerance of a tick's ``t`` against ``k * dt``.
+#: Relative tolerance of a tick's ``t`` against ``k * dt`` (and of a schedule's ``dt``).
 TICK_TIME_RTOL = 1e-9
+#: Self-clocked: a schedule may make its next tick due at most this far ahead [periods]
+#: (the manager's first tick is due 5 periods after the schedule, at most).
+SCHEDULE_AHEAD_PERIODS = 10.0
+#: Self-clocked: the run's first schedule may arrive this late [periods after ``first`` was
+#: due] (an agent stalled at the start joins at the tick due then).
+SCHEDULE_START_LAG_PERIODS = 100.0
 
 #: Reasons a well-formed input is rejected (keys of :attr:`TickEngine.dropped`).
 DROP_REASONS = (
@@ -77,6 +103,8 @@ DROP_REASONS = (
     "y_ahead",
     "y_duplicate",
     "y_size",
+    "schedule_dt",
+    "schedule_time",
 )
 
 _NOBODY: frozenset[str] = frozenset()
@@ -141,6 +169,16 @@ class TickEngine:
         self._last_arrival = -math.inf  # realtime: arrival of the previous tick message [s]
         self._horizon_arrival = -math.inf  # realtime: arrival of the newest accepted tick [s]
         self._late_alone = False  # realtime: the previous tick message was late on its own
+        #: ``True`` once a schedule fixed the run as self-clocked, ``False`` once a tick
+        #: message fixed it as driven by tick messages.
+        self.clocked: bool | None = None
+        self._t0 = math.nan  # self-clocked: tick j is due at t0 + j * dt [s]
+        self._first = 0  # self-clocked: the schedule's first tick
+        self._last = -1  # self-clocked: its last tick (-1: no schedule)
+        self._taken_due = math.nan  # self-clocked: when tick self.k was due [s]
+        #: Self-clocked: per neighbour, the ticks that used no data for it although the
+        #: manager had not reported it lost (drained by :meth:`take_inputs_missing`).
+        self.inputs_missing: dict[str, list[int]] = {}
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -157,11 +195,15 @@ class TickEngine:
         Returns:
             ``True`` when it was accepted (a tick may be ready to run).
         """
+        if self.clocked:
+            self.dropped["tick_mode"] += 1
+            return False
         if self.realtime is None:
             self.realtime = realtime
         elif realtime != self.realtime:
             self.dropped["tick_mode"] += 1
             return False
+        self.clocked = False
         if k < 0 or abs(t - k * self.dt) > TICK_TIME_RTOL * max(1.0, abs(t)):
             self.dropped["tick_time"] += 1
             return False
@@ -207,6 +249,82 @@ class TickEngine:
         self._horizon_arrival = arrived
         return True
 
+    def on_schedule(
+        self,
+        first: int,
+        last: int,
+        t0: float,
+        dt: float,
+        *,
+        missing: Sequence[int] = (),
+        arrived: float,
+    ) -> bool:
+        """A schedule of the manager arrived at ``arrived`` [s, the agent's monotonic clock].
+
+        Args:
+            first: its first tick; ``last``: its last tick.
+            t0: when tick 0 would be due [s, CLOCK_MONOTONIC]; tick ``j`` at ``t0 + j * dt``.
+            dt: its period [s] (must be the experiment's).
+            missing: indices (experiment order) of agents the manager reports lost.
+
+        Returns:
+            ``True`` when it was accepted (the next tick's due time may have changed).
+        """
+        if self.realtime is False or self.clocked is False:
+            self.dropped["tick_mode"] += 1
+            return False
+        period = self.dt
+        if not (math.isfinite(dt) and abs(dt - period) <= TICK_TIME_RTOL * period):
+            self.dropped["schedule_dt"] += 1
+            return False
+        if not math.isfinite(t0) or first < 0 or last < first:
+            self.dropped["schedule_time"] += 1
+            return False
+        names = self.agent_names
+        if missing and max(missing) >= len(names):
+            self.dropped["tick_missing"] += 1
+            return False
+        if t0 != self._t0 or first != self._first:  # a new anchor: is it plausible?
+            upcoming = max(first, self.k + 1)
+            if upcoming <= last and t0 + upcoming * period - arrived > (
+                SCHEDULE_AHEAD_PERIODS * period
+            ):
+                self.dropped["schedule_time"] += 1  # it would freeze the agent
+                return False
+            due_now = math.floor((arrived - t0) / period)  # the tick due at arrival
+            if self.clocked is None:  # the run's first schedule
+                too_far = first > self.window or due_now > first + SCHEDULE_START_LAG_PERIODS
+            else:  # no further than the periods elapsed since its newest tick was due
+                if self.k >= self._first:
+                    ref_k, ref_due = self.k, self._taken_due
+                else:  # none taken on this anchor yet: the tick before its first
+                    ref_k = self._first - 1
+                    ref_due = self._t0 + ref_k * period
+                elapsed = max(0.0, (arrived - ref_due) / period)
+                too_far = due_now > ref_k + elapsed + REALTIME_SLACK_TICKS
+            if too_far:
+                self.dropped["schedule_time"] += 1  # it would race the agent ahead
+                return False
+        self.clocked = self.realtime = True
+        self._t0, self._first, self._last = t0, first, last
+        self._lost = frozenset(names[i] for i in missing) if missing else _NOBODY
+        return True
+
+    def next_due(self) -> float | None:
+        """Self-clocked: when the next tick is due [s] (``None``: none is, or not running)."""
+        if not (self.clocked and self.running):
+            return None
+        upcoming = max(self._first, self.k + 1)
+        if upcoming > self._last:
+            return None
+        return self._t0 + upcoming * self.dt
+
+    def take_inputs_missing(self) -> dict[str, list[int]]:
+        """The ticks that used no data for a neighbour since the last call (see
+        :attr:`inputs_missing`), by neighbour; the record is emptied."""
+        taken, self.inputs_missing = self.inputs_missing, {}
+        return taken
+
     def _is_stale(self, t: float, arrived: float) -> bool:
         """Realtime: did the tick of time ``t`` [s] queue up while this agent was stalled?
 
@@ -231,8 +349,11 @@ class TickEngine:
         self._delay_estimate = min(delay, self._delay_estimate + DELAY_ESTIMATE_RELAX * dt)
         return False
 
-    def on_neighbour(self, name: str, k: int, values: np.ndarray) -> bool:
-        """Neighbour ``name``'s output ``y_k`` arrived.
+    def on_neighbour(
+        self, name: str, k: int, values: np.ndarray, arrived: float | None = None
+    ) -> bool:
+        """Neighbour ``name``'s output ``y_k`` arrived (at ``arrived`` [s], the agent's clock;
+        used by a self-clocked run to bound how far ahead it may be).
 
         Returns:
             ``True`` when it was kept and the next tick may now be ready to run.
@@ -244,7 +365,12 @@ class TickEngine:
         elif values.shape[0] != size:
             self.dropped["y_size"] += 1
             return False
-        if self.realtime:
+        if self.clocked:  # at most a few ticks past the tick due (or this agent's own)
+            due = self.k
+            if arrived is not None and self._last >= 0:
+                due = max(due, math.floor((arrived - self._t0) / self.dt))
+            limit = due + REALTIME_Y_AHEAD
+        elif self.realtime:
             limit = max(self.horizon, self.k) + REALTIME_Y_AHEAD
         else:  # tick k must have been released, which the window bounds
             limit = self.k + self.window + 1
@@ -266,11 +392,13 @@ class TickEngine:
             if oldest >= oldest_kept and len(history) <= MAX_NEIGHBOUR_HISTORY:
                 break
             del history[oldest]
+        if self.clocked:
+            return False  # a self-clocked tick waits for its due time, not for inputs
         return self.running and self.horizon > self.k and k >= self.k
 
     # -- running ticks -------------------------------------------------------------------------
 
-    def take(self, *, gather: bool) -> Tick | None:
+    def take(self, *, gather: bool, now: float | None = None) -> Tick | None:
         """The next tick to run, or ``None`` while none is released or its inputs are not in.
 
         A returned tick is started: :attr:`k` becomes its index.
@@ -278,7 +406,10 @@ class TickEngine:
         Args:
             gather: the tick uses the neighbours' outputs (the agent is actuating and has
                 sensed at least once); ignored for tick 0.
+            now: the time [s, the agent's monotonic clock]; needed by a self-clocked run.
         """
+        if self.clocked:
+            return self._take_due(gather, now)
         if not self.running or self.k >= self.horizon:
             return None
         if self.realtime:  # the newest released tick; those in between are skipped
@@ -296,8 +427,30 @@ class TickEngine:
         self.k = k
         return Tick(k, t, skipped, neighbours)
 
+    def _take_due(self, gather: bool, now: float | None) -> Tick | None:
+        """Self-clocked: the newest tick due at ``now``, with the inputs that are in."""
+        if now is None:
+            raise ValueError("a self-clocked tick engine needs the time: take(now=...)")
+        due = self.next_due()
+        if due is None or now < due:
+            return None
+        upcoming = max(self._first, self.k + 1)
+        k = min(self._last, max(upcoming, math.floor((now - self._t0) / self.dt)))
+        skipped = k - self.k - 1 if self.k >= 0 else 0
+        neighbours = None
+        if gather and k > 0:
+            neighbours = self.gather(k - 1, self._lost, skipped > 0, wait=False)
+            if neighbours is not None:
+                lost = self._lost
+                for name, values in neighbours.items():
+                    if values is None and name not in lost:
+                        self.inputs_missing.setdefault(name, []).append(k)
+        self.k = k
+        self._taken_due = self._t0 + k * self.dt
+        return Tick(k, k * self.dt, skipped, neighbours)
+
     def gather(
-        self, k_prev: int, missing: frozenset[str], stale_ok: bool
+        self, k_prev: int, missing: frozenset[str], stale_ok: bool, *, wait: bool = True
     ) -> dict[str, np.ndarray | None] | None:
         """Neighbours' ``y_{k_prev}``, or ``None`` while one that is not missing is not in yet.
 
@@ -305,6 +458,8 @@ class TickEngine:
             k_prev: the tick whose outputs are used.
             missing: neighbours that count as no data.
             stale_ok: a neighbour whose ``y_{k_prev}`` is not in gives its newest older output.
+            wait: ``False``: a neighbour whose output is not in counts as no data (``None``)
+                instead of making the whole result ``None``.
         """
         result: dict[str, np.ndarray | None] = {}
         for name in self.neighbours:
@@ -317,8 +472,10 @@ class TickEngine:
             elif stale_ok:
                 older = [k for k in history if k < k_prev]
                 result[name] = history[max(older)] if older else None
-            else:
+            elif wait:
                 return None
+            else:
+                result[name] = None
         return result
 
     def counters(self) -> Mapping[str, int]:

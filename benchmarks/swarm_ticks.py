@@ -8,6 +8,11 @@ and the fraction of late ticks. Lockstep mode: speed as a multiple of real time.
     python benchmarks/swarm_ticks.py            # the targets' configurations (Frisbee fleet)
     python benchmarks/swarm_ticks.py --short    # Frisbee fleet, N = 8 at 50 Hz (< 60 s)
     python benchmarks/swarm_ticks.py --agents 32 --rates 100 --vehicle simulated
+    python benchmarks/swarm_ticks.py --agents 16 32 --rates 100 --seconds 4 --realtime-clock both
+
+``--realtime-clock`` picks how realtime runs keep time (the experiment's ``realtime_clock``):
+``manager`` (one tick message per period), ``shared`` (the agents keep the manager's schedule
+themselves) or ``both`` (each configuration once each way, back to back after one baseline).
 
 Every run records to a temporary MCAP file through the recorder process, like ``hilswarm run``
 (``--record inline``: inside the manager process, on its ticking thread; ``--record off``: not
@@ -26,14 +31,15 @@ runs; its keys are stable (docs/running.md, "Benchmark JSON lines"):
 
     {"kind": "bare"|"runtime", "mode": "realtime"|"lockstep", "agents", "rate_hz", "p50_ms",
      "p99_ms", "late_fraction", "speed", "startup_s", "load_1min", "vehicle",
-     "manager_cpu_ms", "agent_cpu_ms", "recorder_cpu_ms"}
+     "manager_cpu_ms", "agent_cpu_ms", "recorder_cpu_ms", "realtime_clock"}
 
 ``p99_ms`` is ``null`` when late ticks make it infinite; ``speed`` is ``null`` in realtime;
 ``late_fraction`` is ``null`` in lockstep; CPU figures are per tick (``agent_cpu_ms``: one
 agent's mean; for the bare bus, one client's mean; its manager and recorder figures are
-``null``); ``load_1min`` is the 1-minute load average when the configuration began (the
-benchmark's own processes raise it; ``--settle-load 1`` waits for a quiet machine before
-each run).
+``null``); ``realtime_clock`` is the runtime's ``"manager"`` or ``"shared"`` in realtime
+(``null`` for the bare bus and in lockstep); ``load_1min`` is the 1-minute load average
+when the configuration began (the benchmark's own processes raise it; ``--settle-load 1``
+waits for a quiet machine before each run).
 """
 
 from __future__ import annotations
@@ -62,7 +68,14 @@ from hilswarm.orchestrator.run_summary import RunSummary
 
 
 def ring_experiment(
-    folder: Path, *, n: int, rate_hz: float, mode: str, seconds: float, vehicle: str
+    folder: Path,
+    *,
+    n: int,
+    rate_hz: float,
+    mode: str,
+    seconds: float,
+    vehicle: str,
+    realtime_clock: str = "manager",
 ) -> Path:
     """An experiment file: ``n`` agents on a two-way ring."""
     names = [f"r{i}" for i in range(n)]
@@ -82,7 +95,8 @@ def ring_experiment(
         agent = "initial_state = [{x}, 0.0]\n"
     text = (
         f'[experiment]\nname = "bench"\nrate_hz = {rate_hz}\nduration_s = {seconds}\n'
-        f'mode = "{mode}"\non_agent_loss = "stop"\n\n[graph]\nagents = {names}\n'
+        f'mode = "{mode}"\non_agent_loss = "stop"\nrealtime_clock = "{realtime_clock}"\n'
+        f"\n[graph]\nagents = {names}\n"
         f"adjacency = {rows}\n\n[defaults]\n{defaults}\n"
     )
     for i, name in enumerate(names):
@@ -106,6 +120,16 @@ class Result:
     agent_cpu_s: float  # one agent process's CPU per tick [s] (mean over the agents)
     startup_s: float  # agents started to every agent armed [s]
     load_1min: float  # the machine's 1-minute load average when the configuration began
+    realtime_clock: str = "manager"  # realtime: "manager" (tick messages) or "shared"
+
+    @property
+    def label(self) -> str:
+        """The mode column: ``rt/shared`` for a self-clocked realtime run."""
+        return "rt/shared" if self.clocked else self.mode
+
+    @property
+    def clocked(self) -> bool:
+        return self.mode == "realtime" and self.realtime_clock == "shared"
 
     @property
     def total(self) -> int:
@@ -131,7 +155,7 @@ class Result:
         late = "-" if self.mode == "lockstep" else f"{100 * self.late_fraction:.2f}"
         speed = f"{self.summary.speed:.1f}x" if self.mode == "lockstep" else "-"
         row = (
-            f"{self.vehicle:9} {self.mode:9} {self.n:>3} {self.rate_hz:>5g} {self.total:>6} "
+            f"{self.vehicle:9} {self.label:9} {self.n:>3} {self.rate_hz:>5g} {self.total:>6} "
             f"{p50:>7.2f} {p99:>7.2f} {late:>6} {self.manager_cpu_s * 1e3:>8.3f} "
             f"{self.agent_cpu_s * 1e3:>8.3f} {self.recorder_cpu_s * 1e3:>8.3f} {speed:>7} "
             f"{self.startup_s:>6.2f} {self.load_1min:>5.2f}"
@@ -169,6 +193,7 @@ def json_line(
     manager_cpu_ms: float = math.nan,
     agent_cpu_ms: float = math.nan,
     recorder_cpu_ms: float = math.nan,
+    realtime_clock: str | None = None,
 ) -> str:
     """The stable JSON line of one configuration (keys documented in the module doc)."""
     lockstep = mode == "lockstep"
@@ -188,6 +213,7 @@ def json_line(
             "manager_cpu_ms": _finite(manager_cpu_ms, 4),
             "agent_cpu_ms": _finite(agent_cpu_ms, 4),
             "recorder_cpu_ms": _finite(recorder_cpu_ms, 4),
+            "realtime_clock": realtime_clock,
         }
     )
 
@@ -201,6 +227,7 @@ def result_json(result: Result) -> str:
         speed=result.summary.speed, startup_s=result.startup_s, load_1min=result.load_1min,
         vehicle=result.vehicle, manager_cpu_ms=result.manager_cpu_s * 1e3,
         agent_cpu_ms=result.agent_cpu_s * 1e3, recorder_cpu_ms=result.recorder_cpu_s * 1e3,
+        realtime_clock=result.realtime_clock if result.mode == "realtime" else None,
     )  # fmt: skip
 
 
@@ -223,6 +250,7 @@ def run_once(
     record: str,
     vehicle: str,
     secure: bool = False,
+    realtime_clock: str = "manager",
 ) -> Result:
     """Run one configuration like ``hilswarm run`` does (agents, manager, recorder process).
 
@@ -233,7 +261,13 @@ def run_once(
         folder = Path(tmp)
         experiment = load_experiment(
             ring_experiment(
-                folder, n=n, rate_hz=rate_hz, mode=mode, seconds=seconds, vehicle=vehicle
+                folder,
+                n=n,
+                rate_hz=rate_hz,
+                mode=mode,
+                seconds=seconds,
+                vehicle=vehicle,
+                realtime_clock=realtime_clock,
             )
         )
         listen = [bus.loopback_endpoint(0)]
@@ -288,7 +322,7 @@ def run_once(
     ticks = max(1, summary.ticks + summary.late_ticks)
     return Result(
         vehicle, mode, n, rate_hz, summary, cpu / ticks, max(0.0, recorder_cpu) / ticks,
-        agents.total_s() / ticks / n, startup, load,
+        agents.total_s() / ticks / n, startup, load, realtime_clock,
     )  # fmt: skip
 
 
@@ -340,15 +374,27 @@ def verdicts(
     run (the late-fraction rule alone would call 100 % late beside 99.5 % "met").
     """
     lines = []
+    clocks = sorted({r.realtime_clock for r in results if r.mode == "realtime"}) or ["manager"]
     for vehicle in sorted({r.vehicle for r in results}):
 
-        def find(mode: str, n: int, rate: float, vehicle: str = vehicle) -> Result | None:
+        def find(
+            mode: str, n: int, rate: float, vehicle: str = vehicle, clock: str = ""
+        ) -> Result | None:
             key = (vehicle, mode, n, rate)
-            return next((r for r in results if (r.vehicle, r.mode, r.n, r.rate_hz) == key), None)
+            return next(
+                (
+                    r
+                    for r in results
+                    if (r.vehicle, r.mode, r.n, r.rate_hz) == key
+                    and (not clock or r.realtime_clock == clock)
+                ),
+                None,
+            )
 
-        for n, rate in REALTIME_TARGETS:
-            name = f"[{vehicle}] realtime {n} agents at {rate:g} Hz"
-            result, bare = find("realtime", n, rate), baselines.get(("realtime", n, rate))
+        for (n, rate), clock in [(target, c) for target in REALTIME_TARGETS for c in clocks]:
+            name = f"[{vehicle}] realtime ({clock} clock) {n} agents at {rate:g} Hz"
+            result = find("realtime", n, rate, clock=clock)
+            bare = baselines.get(("realtime", n, rate))
             if result is None or bare is None:
                 lines.append(f"{name}: not measured (with its baseline)")
                 continue
@@ -398,7 +444,7 @@ def verdicts(
         for r in results:
             if r.vehicle == vehicle:
                 lines.append(
-                    f"[{vehicle}] CPU per tick, {r.mode} {r.n} @ {r.rate_hz:g} Hz: manager "
+                    f"[{vehicle}] CPU per tick, {r.label} {r.n} @ {r.rate_hz:g} Hz: manager "
                     f"{r.manager_cpu_s * 1e3:.3f} ms, each agent {r.agent_cpu_s * 1e3:.3f} ms, "
                     f"recorder {r.recorder_cpu_s * 1e3:.3f} ms"
                 )
@@ -429,6 +475,11 @@ def main(argv: list[str] | None = None) -> int:
         "--zenoh-runtime", choices=("lean", "default"), default="lean",
         help="Zenoh runtime pools of every process (baseline and runtime alike): hilswarm's "
         "own setting (bus.LEAN_RUNTIME, as hilswarm run) or Zenoh's defaults",
+    )  # fmt: skip
+    parser.add_argument(
+        "--realtime-clock", choices=("manager", "shared", "both"), default="manager",
+        help="realtime runs: tick messages from the manager (default), agents keeping the "
+        "manager's schedule on the shared monotonic clock, or both (paired, same baseline)",
     )  # fmt: skip
     parser.add_argument("--no-lockstep", action="store_true")
     parser.add_argument(
@@ -473,14 +524,18 @@ def main(argv: list[str] | None = None) -> int:
                 baselines[(mode, n, rate)] = bare
                 print(baseline_row(bare, load), flush=True)
                 print(bare_json(bare, load), flush=True)
-            settle(args.settle_load)
-            result = run_once(
-                n=n, rate_hz=rate, mode=mode, seconds=seconds, record=args.record,
-                vehicle=vehicle,
-            )  # fmt: skip
-            results.append(result)
-            print(result.row(), flush=True)
-            print(result_json(result), flush=True)
+            clocks = (
+                ["manager", "shared"] if args.realtime_clock == "both" else [args.realtime_clock]
+            )
+            for clock in clocks if mode == "realtime" else ["manager"]:
+                settle(args.settle_load)
+                result = run_once(
+                    n=n, rate_hz=rate, mode=mode, seconds=seconds, record=args.record,
+                    vehicle=vehicle, realtime_clock=clock,
+                )  # fmt: skip
+                results.append(result)
+                print(result.row(), flush=True)
+                print(result_json(result), flush=True)
     print("\ntargets (each runtime figure against its paired bare-bus baseline):")
     for line in verdicts(results, baselines):
         print("  " + line)

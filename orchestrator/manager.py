@@ -16,6 +16,13 @@ subscription is known), and then sends ticks:
   whose y_k is not in when tick k+1 is due are counted *late* for that tick (per agent) and
   listed as missing in tick k+1, so their neighbours see ``None``; late answers are recorded
   and counted, never silently absorbed.
+* ``realtime``, **self-clocked** (``realtime_clock = "shared"``, only when every agent runs on
+  this host and no XBee gateway follows the ticks): instead of one tick message per period the
+  manager sends a *schedule* (:class:`~hilswarm.agents.bus.ScheduleMessage`: T0 on
+  CLOCK_MONOTONIC, dt, first and last tick) at the start, on every change (a pause ends it
+  after the next tick, a resume re-anchors it, a lost agent is announced) and every
+  :data:`SCHEDULE_REPEAT_S`; each agent wakes itself at ``T0 + k * dt``. The manager still
+  closes tick k when tick k+1 is due and accounts it exactly as above (late: y_k not in).
 
 Every tick is accounted on ``/orchestrator/ticks``: scheduled and send times, completion, late
 and missing agents, and each agent's answer latency and sense/compute/actuate times.
@@ -78,6 +85,9 @@ OVERLOAD_LATE_FRACTION = 0.1
 DEFAULT_MAX_LATE_FRACTION = 0.01
 #: Default period of handing records to the recorder [s].
 DEFAULT_FLUSH_PERIOD_S = 0.02
+#: Self-clocked realtime: the schedule is repeated this often [s] (a forged or lost schedule
+#: holds at most this long).
+SCHEDULE_REPEAT_S = 1.0
 
 # Event kinds of the ticking thread's queue (rare: not one per message).
 _ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE = range(6)
@@ -132,6 +142,8 @@ class InstanceManager:
             [s] (a killed orchestrator loses at most this much).
         describe_process: says what an agent's process is doing (exited, killed, still
             running) when its liveliness token disappears, for the loss report.
+        remote: agents that join from other hosts (``hilswarm run --remote``): a realtime run
+            with any keeps tick messages (no self-clocked schedule).
     """
 
     def __init__(
@@ -151,6 +163,7 @@ class InstanceManager:
         record_ticks: bool = True,
         flush_period_s: float = DEFAULT_FLUSH_PERIOD_S,
         describe_process: Callable[[str], str] | None = None,
+        remote: Sequence[str] = (),
     ) -> None:
         if not listen and not connect:
             raise ManagerError("the instance manager needs endpoints to listen on or connect to")
@@ -163,6 +176,19 @@ class InstanceManager:
         self.dt = experiment.dt
         self.mode = experiment.mode
         self._realtime = experiment.mode == "realtime"
+        #: Self-clocked realtime (see the module docstring): agents keep the schedule.
+        self.self_clocked = (
+            self._realtime
+            and getattr(experiment, "realtime_clock", "manager") == "shared"
+            and not remote
+            and getattr(experiment, "gateway", None) is None
+        )
+        if clock is not time.perf_counter and clock is not time.monotonic:
+            self.self_clocked = False  # the schedule must be on CLOCK_MONOTONIC
+        # Self-clocked: the schedule in force (first, last tick; T0 [s, manager clock]).
+        self._schedule = (0, experiment.n_ticks - 1, 0.0)
+        self._schedule_sent = -math.inf  # when it was last sent [s]
+        self._halt_after: int | None = None  # a pause ends the schedule after this tick
         self._listen = list(listen)
         self._connect = list(connect)
         #: Endpoints of the bus (after :meth:`open`: the bound ones when listening).
@@ -183,7 +209,11 @@ class InstanceManager:
         self._next_flush = 0.0
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
+        # realtime: one tick in flight; self-clocked: also the next one, opened in advance
         self.window = 1 if self._realtime else experiment.lockstep_window
+        if self.self_clocked:
+            self.window = 2
+        self._step_k = 0  # self-clocked: the tick whose due time is the next step
         self._tick = TickWindow(self.n, self.window)
         self._frames: list[bytes] = []
         self._frames_since = -1  # the tick at which _frames began gathering (-1: unknown)
@@ -524,10 +554,15 @@ class InstanceManager:
         self._publish_state("running")
         start = clock()
         t0 = start + (min(0.05, 5 * dt) if realtime else 0.0)
+        clocked = self.self_clocked
+        if clocked:  # the agents wake themselves at t0 + k * dt from now on
+            self._send_schedule(0, self.experiment.n_ticks - 1, t0)
         if realtime:
             self._wait_until(t0)
         if not self._stop_reason:
-            if realtime:
+            if clocked:
+                self._clocked_step(t0)
+            elif realtime:
                 self._release(0, t0)
             else:
                 self._release_window()
@@ -536,9 +571,16 @@ class InstanceManager:
             now = clock()
             if self._reanchor:  # realtime resume: tick k+1 is due one period from now
                 self._reanchor = False
-                t0 = now - tick.k * dt
+                t0 = self._reanchor_clocked(now) if clocked else now - tick.k * dt
             due = t0 + (tick.k + 1) * dt if realtime else math.inf
-            if self._paused:
+            if clocked:
+                due = t0 + self._step_k * dt
+            # self-clocked: a pause takes effect once the tick after it is closed
+            halting = clocked and self._halt_after is not None and tick.base <= self._halt_after
+            stepping = not self._paused or halting
+            if clocked and now - self._schedule_sent >= SCHEDULE_REPEAT_S:
+                self._send_schedule(*self._schedule)
+            if not stepping:
                 wait_until = now + 0.1
             elif realtime:
                 wait_until = due
@@ -559,7 +601,11 @@ class InstanceManager:
                 if self._stop_reason:
                     break
             if realtime:
-                if not self._paused and clock() >= due:
+                if clocked:
+                    halting = self._halt_after is not None and tick.base <= self._halt_after
+                    if (not self._paused or halting) and clock() >= due:
+                        self._clocked_step(t0)
+                elif not self._paused and clock() >= due:
                     self._realtime_step(t0)
             else:
                 self._lockstep_step()
@@ -586,6 +632,48 @@ class InstanceManager:
                 tick.release(k, t0 + k * self.dt, self._clock())
         if k < n_ticks:
             self._send_tick(k, missing)
+        self._count(account, late)
+        if k >= n_ticks:
+            self._stop_reason = "completed"
+
+    def _clocked_step(self, t0: float) -> None:
+        """Self-clocked: tick ``j = _step_k`` is due now (the agents start it themselves).
+
+        Closes the ticks before ``j`` (late agents counted) and opens ``j`` and ``j + 1``
+        (an agent's answer may come before this thread gets here: its tick is open already).
+        """
+        tick, n_ticks, dt = self._tick, self.experiment.n_ticks, self.dt
+        j = self._step_k
+        last = min(n_ticks - 1, self._schedule[1])
+        closed: list[tuple[TickAccount, list[int]]] = []
+        with self._lock:
+            while tick.base < j and tick.base <= tick.released:
+                complete = tick.base_complete()
+                late = [] if complete else tick.unanswered()
+                closed.append((self._close_base(late, complete), late))
+            for k in range(tick.released + 1, min(last, j + 1) + 1):
+                tick.release(k, t0 + k * dt, t0 + k * dt)  # no message: sent = scheduled
+        self._step_k = j + 1
+        for account, late in closed:
+            self._count(account, late)
+        if tick.base >= n_ticks:
+            self._stop_reason = "completed"
+
+    def _reanchor_clocked(self, now: float) -> float:
+        """Self-clocked resume: the tick after the last one started is due one period from
+        ``now``; returns the new T0 [s] after sending the new schedule."""
+        tick = self._tick
+        with self._lock:
+            started = min(self._step_k - 1, tick.released)
+            tick.released = started  # a tick opened in advance is opened again, re-timed
+        t0 = now - started * self.dt
+        self._halt_after = None
+        self._step_k = started + 1
+        self._send_schedule(started + 1, self.experiment.n_ticks - 1, t0)
+        return t0
+
+    def _count(self, account: TickAccount, late: list[int]) -> None:
+        """Account a closed tick and count it (late or on time)."""
         self._account(account)
         for j in late:
             self.summary.late[self.names[j]] += 1
@@ -594,8 +682,6 @@ class InstanceManager:
         else:
             self.summary.ticks += 1
         self._watch_overload(account.k, bool(late))
-        if k >= n_ticks:
-            self._stop_reason = "completed"
 
     def _watch_overload(self, k: int, late: bool) -> None:
         """Say once when many recent ticks were late: the machine may not keep up."""
@@ -736,6 +822,14 @@ class InstanceManager:
             if item[0] == _ALIVE:
                 self.alive.add(item[1])
 
+    def _send_schedule(self, first: int, last: int, t0: float) -> None:
+        """Self-clocked: send (and keep) the schedule: ticks ``first..last`` due at
+        ``t0 + k * dt`` [s, CLOCK_MONOTONIC], with the lost agents."""
+        self._schedule = (first, last, t0)
+        message = bus.ScheduleMessage(first, last, t0, self.dt, tuple(sorted(self.lost)))
+        self._tick_pub.put(bus.encode_schedule(message))
+        self._schedule_sent = self._clock()
+
     def _send_tick(self, k: int, missing: Sequence[int]) -> None:
         message = bus.TickMessage(k, k * self.dt, tuple(missing), realtime=self._realtime)
         self._tick_pub.put(bus.encode_tick(message))
@@ -755,6 +849,10 @@ class InstanceManager:
             self._stop_reason = f"e-stop at tick {k}{': ' + reason if reason else ''}"
         elif command is bus.ControlCommand.PAUSE and not self._paused:
             self._paused = True
+            if self.self_clocked:  # the agents stop after the next tick (no race with it)
+                self._halt_after = self._step_k
+                first, _, t0 = self._schedule
+                self._send_schedule(first, max(first, self._halt_after), t0)
             self._record_event(ORCHESTRATOR, "paused", k=k, detail=reason)
             self._publish_state("paused", reason)
         elif command is bus.ControlCommand.RESUME and self._paused:
@@ -793,6 +891,8 @@ class InstanceManager:
         if not self._realtime and self._tick.released >= 0 and not self._stop_reason:
             # Tell the neighbours now: they may be waiting for this agent's output.
             self._send_tick(self._tick.released, sorted(self.lost))
+        elif self.self_clocked and not self._stop_reason:
+            self._send_schedule(*self._schedule)  # the same schedule, with the lost agent
         self.summary.lost.append(name)
         self.summary.lost_at[name] = AgentEvent(k, reason)
         logger.warning("agent %s lost at tick %d: %s", name, k, reason)

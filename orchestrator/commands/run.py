@@ -308,6 +308,7 @@ def _run(
         answer_timeout_s=args.answer_timeout,
         display=_RegistryDisplay(display, record),
         describe_process=launcher.describe,
+        remote=args.remote,
     )
     interrupted = False
     gateway = _gateway_launcher(experiment, run_id, args)

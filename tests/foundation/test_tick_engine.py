@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hilswarm.agents import bus
 from hilswarm.agents.tick_engine import (
     NEIGHBOUR_HISTORY,
     REALTIME_SLACK_TICKS,
+    SCHEDULE_AHEAD_PERIODS,
+    SCHEDULE_START_LAG_PERIODS,
     STALE_TICK_PERIODS,
     TickEngine,
 )
@@ -230,3 +234,146 @@ def test_engine_arguments_are_checked() -> None:
         TickEngine((), NAMES, 0.0, 1)
     with pytest.raises(ValueError, match="window"):
         TickEngine((), NAMES, DT, 0)
+
+
+# -- self-clocked realtime: the manager's schedule -------------------------------------------
+
+T0 = 1000.0  # when tick 0 is due [s, the shared monotonic clock]
+
+
+def clocked(last: int = 10**6, first: int = 0, t0: float = T0, **kwargs: object) -> TickEngine:
+    e = engine(**kwargs)
+    assert e.on_schedule(first, last, t0, DT, arrived=t0 + first * DT - 0.05)
+    return e
+
+
+def test_self_clocked_ticks_are_due_at_t0_plus_k_dt_and_run_with_the_inputs_that_are_in() -> None:
+    e = clocked()
+    assert e.next_due() == T0
+    assert e.take(gather=True, now=T0 - 1e-6) is None  # not due yet
+    tick = e.take(gather=True, now=T0)
+    assert (tick.k, tick.t, tick.skipped, tick.neighbours) == (0, 0.0, 0, None)
+    assert e.next_due() == pytest.approx(T0 + DT)
+    feed(e, 0, "a")  # c's y_0 is not in when tick 1 is due: no wait, no data for c
+    assert not e.on_neighbour("c", 5, y(5), arrived=T0 + 0.5 * DT)  # too far ahead
+    tick = e.take(gather=True, now=T0 + DT + 1e-4)
+    assert tick.k == 1 and tick.neighbours["a"][0] == 0.0 and tick.neighbours["c"] is None
+    assert e.inputs_missing == {"c": [1]}
+    assert e.take_inputs_missing() == {"c": [1]} and e.inputs_missing == {}
+    assert e.counters() == {"y_ahead": 1}
+
+
+def test_self_clocked_agent_behind_runs_the_newest_due_tick_and_counts_the_skipped() -> None:
+    e = clocked()
+    e.take(gather=False, now=T0)
+    feed(e, 0)
+    feed(e, 2, "a")  # a ran ahead meanwhile
+    tick = e.take(gather=True, now=T0 + 4.5 * DT)  # stalled: ticks 1..3 were due
+    assert (tick.k, tick.skipped) == (4, 3)
+    assert tick.neighbours["a"][0] == 2.0 and tick.neighbours["c"][0] == 0.0  # newest older
+    assert e.take(gather=True, now=T0 + 4.5 * DT) is None
+
+
+def test_self_clocked_lost_neighbours_are_no_data_and_not_noted_missing() -> None:
+    e = clocked()
+    assert e.on_schedule(0, 10**6, T0, DT, missing=(0,), arrived=T0)  # a is lost: same anchor
+    e.take(gather=False, now=T0)
+    feed(e, 0, "c")
+    tick = e.take(gather=True, now=T0 + DT)
+    assert tick.neighbours["a"] is None and e.inputs_missing == {}
+
+
+def test_a_schedule_ends_at_its_last_tick_and_a_new_anchor_resumes_it() -> None:
+    e = clocked()
+    for k in range(3):
+        assert e.take(gather=False, now=T0 + k * DT).k == k
+    assert e.on_schedule(0, 3, T0, DT, arrived=T0 + 2.5 * DT)  # pause: ends after tick 3
+    assert e.take(gather=False, now=T0 + 3 * DT).k == 3
+    assert e.next_due() is None
+    assert e.take(gather=False, now=T0 + 100.0) is None  # paused: nothing is due
+    resume = T0 + 100.0  # re-anchored: tick 4 is due one period after the resume
+    t1 = resume - 3 * DT
+    assert e.on_schedule(4, 10**6, t1, DT, arrived=resume + 1e-4)
+    assert e.next_due() == pytest.approx(resume + DT)
+    tick = e.take(gather=False, now=resume + DT)
+    assert (tick.k, tick.skipped) == (4, 0)
+
+
+def test_forged_or_odd_schedules_are_rejected_and_counted() -> None:
+    e = engine()
+    arrived = T0 - 0.05
+    assert not e.on_schedule(0, 100, T0, 2 * DT, arrived=arrived)  # another period
+    assert not e.on_schedule(0, 100, math.nan, DT, arrived=arrived)
+    assert not e.on_schedule(5, 4, T0, DT, arrived=arrived)  # ends before it begins
+    assert not e.on_schedule(0, 100, T0, DT, missing=(3,), arrived=arrived)  # no agent 3
+    far = T0 + SCHEDULE_AHEAD_PERIODS * DT + 0.06
+    assert not e.on_schedule(0, 100, far, DT, arrived=arrived)  # would freeze the agent
+    assert not e.on_schedule(10**6, 10**7, T0, DT, arrived=arrived)  # a run begins at 0
+    old = T0 - (SCHEDULE_START_LAG_PERIODS + 2) * DT
+    assert not e.on_schedule(0, 10**7, old, DT, arrived=T0)  # would race it ahead
+    assert e.counters() == {"schedule_dt": 1, "schedule_time": 5, "tick_missing": 1}
+    assert e.on_schedule(0, 100, T0, DT, arrived=arrived)  # the genuine one
+    for k in range(5):
+        e.take(gather=False, now=T0 + k * DT)
+    # Once running: a new anchor may not put it further ahead than the time elapsed allows.
+    assert not e.on_schedule(0, 100, T0 - 1.0, DT, arrived=T0 + 4.2 * DT)
+    assert not e.on_schedule(0, 100, T0 + 1.0, DT, arrived=T0 + 4.2 * DT)  # nor freeze it
+    assert e.dropped["schedule_time"] == 7
+    # Mode: a tick message in a self-clocked run, and a schedule in a run of tick messages.
+    assert not e.on_tick(5, 5 * DT, (), True, arrived=T0 + 5 * DT)
+    m = engine()
+    assert m.on_tick(0, 0.0, (), True, arrived=T0)
+    assert not m.on_schedule(0, 100, T0, DT, arrived=T0)
+    assert e.dropped["tick_mode"] == 1 and m.dropped["tick_mode"] == 1
+    assert e.k == 4 and e.take(gather=False, now=T0 + 5 * DT).k == 5  # the schedule held
+
+
+def test_a_self_clocked_engine_needs_the_time() -> None:
+    e = clocked()
+    with pytest.raises(ValueError, match="now"):
+        e.take(gather=False)
+
+
+def test_schedule_messages_round_trip_and_are_not_tick_messages() -> None:
+    message = bus.ScheduleMessage(4, 99, 1234.5, 0.01, (0, 2))
+    payload = bus.encode_schedule(message)
+    assert bus.is_schedule(payload) and bus.decode_schedule(payload) == message
+    tick = bus.encode_tick(bus.TickMessage(4, 0.04, (), realtime=True))
+    assert not bus.is_schedule(tick)
+    with pytest.raises(bus.BusMessageError):
+        bus.decode_tick(payload)
+    with pytest.raises(bus.BusMessageError):
+        bus.decode_schedule(tick)
+    with pytest.raises(bus.BusMessageError):
+        bus.decode_schedule(payload[:-1])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    wakes=st.lists(st.floats(0.0, 3.0), min_size=1, max_size=80),
+    forged=st.lists(
+        st.tuples(st.integers(0, 10**6), st.floats(-1e4, 1e4), st.floats(0.0, 0.1)), max_size=8
+    ),
+)
+def test_property_self_clocked_ticks_follow_the_clock_whatever_schedules_are_forged(
+    wakes: list[float], forged: list[tuple[int, float, float]]
+) -> None:
+    """The worker wakes late by any amount (periods in ``wakes``); forged schedules arrive
+    between the wakes. Each taken tick is the newest one due on the genuine schedule or
+    behind it (never ahead of the clock by more than the slack), ticks only grow, and the
+    agent is never frozen: once the genuine schedule is repeated, the next tick due runs."""
+    e = clocked(neighbours=())
+    now = T0
+    for i, late in enumerate(wakes):
+        now += late * DT
+        for first, offset, when in forged if i % 7 == 3 else ():
+            e.on_schedule(first, first + 10**6, T0 + offset, DT, arrived=now + when * DT)
+        e.on_schedule(0, 10**6, T0, DT, arrived=now)  # the manager's repeat
+        before = e.k
+        tick = e.take(gather=False, now=now)
+        due = math.floor((now - T0) / DT + 1e-9)
+        if tick is not None:
+            assert before < tick.k <= due + REALTIME_SLACK_TICKS + 1
+        assert e.k <= due + REALTIME_SLACK_TICKS + 1
+        nxt = e.next_due()
+        assert nxt is not None and nxt - now <= (SCHEDULE_AHEAD_PERIODS + 1) * DT + 1e-9
