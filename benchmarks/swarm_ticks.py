@@ -37,9 +37,11 @@ runs; its keys are stable (docs/running.md, "Benchmark JSON lines"):
 ``late_fraction`` is ``null`` in lockstep; CPU figures are per tick (``agent_cpu_ms``: one
 agent's mean; for the bare bus, one client's mean; its manager and recorder figures are
 ``null``); ``realtime_clock`` is the runtime's ``"manager"`` or ``"shared"`` in realtime
-(``null`` for the bare bus and in lockstep); ``load_1min`` is the 1-minute load average
-when the configuration began (the benchmark's own processes raise it; ``--settle-load 1``
-waits for a quiet machine before each run).
+(``null`` in lockstep and for the ticked bare bus; ``"shared"`` for the self-clocked bare
+bus, run beside self-clocked runtimes for information: the verdicts keep the ticked bare
+bus); ``load_1min`` is the 1-minute load average when the configuration began (the
+benchmark's own processes raise it; ``--settle-load 1`` waits for a quiet machine before
+each run).
 """
 
 from __future__ import annotations
@@ -231,13 +233,15 @@ def result_json(result: Result) -> str:
     )  # fmt: skip
 
 
-def bare_json(bare: BareResult, load_1min: float) -> str:
-    """:func:`json_line` of a bare-bus baseline (``agent_cpu_ms``: one client's CPU)."""
+def bare_json(bare: BareResult, load_1min: float, realtime_clock: str | None = None) -> str:
+    """:func:`json_line` of a bare-bus baseline (``agent_cpu_ms``: one client's CPU;
+    ``realtime_clock`` ``"shared"``: the self-clocked bare bus)."""
     p50, p99 = bare.percentiles_ms()
     return json_line(
         kind="bare", mode=bare.mode, agents=bare.n, rate_hz=bare.rate_hz, p50_ms=p50,
         p99_ms=p99, late_fraction=bare.late_fraction, speed=bare.speed,
         startup_s=bare.startup_s, load_1min=load_1min, agent_cpu_ms=bare.client_cpu_s * 1e3,
+        realtime_clock=realtime_clock,
     )  # fmt: skip
 
 
@@ -326,14 +330,14 @@ def run_once(
     )  # fmt: skip
 
 
-def baseline_row(bare: BareResult, load_1min: float) -> str:
+def baseline_row(bare: BareResult, load_1min: float, label: str = "") -> str:
     """A table row for a bare-bus baseline run (same columns as :meth:`Result.row`; ``agt``:
     one client's CPU per tick)."""
     p50, p99 = bare.percentiles_ms()
     late = "-" if bare.mode == "lockstep" else f"{100 * bare.late_fraction:.2f}"
     speed = f"{bare.speed:.1f}x" if bare.mode == "lockstep" else "-"
     return (
-        f"{'bare bus':9} {bare.mode:9} {bare.n:>3} {bare.rate_hz:>5g} {bare.ticks:>6} "
+        f"{'bare bus':9} {label or bare.mode:9} {bare.n:>3} {bare.rate_hz:>5g} {bare.ticks:>6} "
         f"{p50:>7.2f} {p99:>7.2f} {late:>6} {'-':>8} {bare.client_cpu_s * 1e3:>8.3f} "
         f"{'-':>8} {speed:>7} {bare.startup_s:>6.2f} {load_1min:>5.2f}"
     )
@@ -527,6 +531,15 @@ def main(argv: list[str] | None = None) -> int:
             clocks = (
                 ["manager", "shared"] if args.realtime_clock == "both" else [args.realtime_clock]
             )
+            if mode == "realtime" and "shared" in clocks and not args.no_baseline:
+                # the fair pair of a self-clocked runtime: the self-clocked bare bus (info)
+                settle(args.settle_load)
+                load = os.getloadavg()[0]
+                bare = run_bare(
+                    n=n, rate_hz=rate, seconds=seconds, lockstep=False, self_clocked=True
+                )
+                print(baseline_row(bare, load, "rt/shared"), flush=True)
+                print(bare_json(bare, load, "shared"), flush=True)
             for clock in clocks if mode == "realtime" else ["manager"]:
                 settle(args.settle_load)
                 result = run_once(
