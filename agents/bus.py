@@ -34,7 +34,9 @@ is ever consumed):
 * ``alive/<name>`` — the agent's liveliness token (kill -9 is seen when it disappears).
 * ``mocap/<body>`` — a rigid body's pose from the experiment's mocap process
   (:mod:`hilswarm.agents.mocap.message`); ``mocap_status`` — that process's status (JSON);
-  ``mocap_truth/<body>`` — a simulated plant's true pose, for the mocap simulator only.
+  ``mocap_truth/<body>`` — a simulated plant's true pose, for the mocap simulator only;
+  ``mocap_clock`` — the frame clock (frame number and time per frame,
+  :mod:`hilswarm.agents.mocap.frame_clock`) the manager locks the realtime ticks to.
 
 Agents subscribe only to explicit keys, never wildcards, so a non-neighbour's output is never
 delivered to them. The orchestrator's recorder may use wildcards.
@@ -241,6 +243,11 @@ class BusKeys:
     def mocap_status(self) -> str:
         """Key of the mocap process's status (JSON: connected, bodies seen, server lost)."""
         return f"{self.prefix}/mocap_status"
+
+    @property
+    def mocap_clock(self) -> str:
+        """Key of the mocap process's frame clock (frame number and time, once per frame)."""
+        return f"{self.prefix}/mocap_clock"
 
     def mocap_truth(self, body: str) -> str:
         """Key of a simulated body's true pose (agents -> the mocap simulator only)."""

@@ -15,7 +15,10 @@ subscription is known), and then sends ticks:
 * ``realtime`` — tick k is sent at ``T0 + k * dt`` on the monotonic clock (drift free). Agents
   whose y_k is not in when tick k+1 is due are counted *late* for that tick (per agent) and
   listed as missing in tick k+1, so their neighbours see ``None``; late answers are recorded
-  and counted, never silently absorbed.
+  and counted, never silently absorbed. With ``[mocap]`` (``tick_lock``, the default) the
+  ticks are released in step with the camera frames instead: tick k a small lag after the
+  first frame at or after ``T0 + k * dt``, falling back to the free grid at once when frames
+  stop (:mod:`hilswarm.orchestrator.frame_lock`).
 
 Every tick is accounted on ``/orchestrator/ticks``: scheduled and send times, completion, late
 and missing agents, and each agent's answer latency and sense/compute/actuate times.
@@ -42,7 +45,9 @@ import numpy as np
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
+from hilswarm.agents.mocap import frame_clock
 from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
 from hilswarm.orchestrator.outcome import COUNTER_NAMES
 from hilswarm.orchestrator.record_stream import (
     ORCHESTRATOR,
@@ -78,6 +83,8 @@ OVERLOAD_LATE_FRACTION = 0.1
 DEFAULT_MAX_LATE_FRACTION = 0.01
 #: Default period of handing records to the recorder [s].
 DEFAULT_FLUSH_PERIOD_S = 0.02
+#: Realtime with a frame lock: period of the ``frame_lock`` record while locked [s].
+FRAME_LOCK_REPORT_S = 10.0
 
 # Event kinds of the ticking thread's queue (rare: not one per message).
 _ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE = range(6)
@@ -209,6 +216,19 @@ class InstanceManager:
         )
         self._completion = np.full(max(experiment.n_ticks, 1), np.nan)
         self._clock_origin = clock()
+        # Realtime ticks in step with the mocap frames (frame_lock): the lock's state is
+        # shared with the frame-clock callback, guarded by its own small lock.
+        mocap = getattr(experiment, "mocap", None)
+        self._frame_guard = threading.Lock()
+        self._frame_lock: FrameLock | None = None
+        if self._realtime and mocap is not None and mocap.tick_lock:
+            self._frame_lock = FrameLock(1.0 / mocap.rate_hz)
+        self._ticks = TickClock(
+            self.dt, self._frame_lock, mocap.tick_lag_s if self._frame_lock is not None else 0.0
+        )
+        self._lock_reported: bool | None = None  # locked at the last frame_lock record
+        self._lock_report_due = 0.0
+        self._frame_clock_malformed = 0
 
     # -- bus ---------------------------------------------------------------------------------
 
@@ -254,6 +274,13 @@ class InstanceManager:
                         key, zenoh.handlers.Callback(callback, indirect=False)
                     )
                 )
+        if self._frame_lock is not None:
+            entities.append(
+                session.declare_subscriber(
+                    keys.mocap_clock,
+                    zenoh.handlers.Callback(self._on_frame_clock, indirect=False),
+                )
+            )
         entities.append(
             session.declare_subscriber(
                 keys.manager_request,
@@ -325,6 +352,53 @@ class InstanceManager:
                         put((_COMPLETE, k))
 
         return on_y
+
+    def _on_frame_clock(self, sample: zenoh.Sample) -> None:
+        """A mocap frame's clock (100-240 Hz, a Zenoh thread): one update of the frame lock."""
+        arrival = self._clock()
+        try:
+            number, frame_time = frame_clock.decode(sample.payload.to_bytes())
+        except bus.BusMessageError:
+            self._frame_clock_malformed += 1  # only the mocap principal may put it
+            return
+        lock = self._frame_lock
+        if lock is not None:
+            with self._frame_guard:
+                lock.on_frame(number, frame_time, arrival)
+
+    def _due(self, k: int) -> float:
+        """Realtime: the due time of tick ``k`` [s, manager clock], locked or free."""
+        with self._frame_guard:
+            return self._ticks.due(k, self._clock())
+
+    def _note_frame_lock(self, k: int, now: float) -> None:
+        """Record the frame lock's state (``frame_lock`` on ``/orchestrator/status``) when it
+        changes, and every :data:`FRAME_LOCK_REPORT_S` while it holds."""
+        lock, ticks = self._frame_lock, self._ticks
+        if lock is None:
+            return
+        locked = ticks.locked
+        if locked is self._lock_reported and now < self._lock_report_due:
+            return
+        with self._frame_guard:
+            frames, mean, top = lock.take_stats()
+            offset = lock.offset_s
+        if locked:
+            detail = (
+                f"locked: ticks {ticks.lag_s * 1e3:.3g} ms after frames "
+                f"({offset * 1e3:.3g} ms after their frame time); frames after the estimated "
+                f"grid: mean {mean * 1e3:.3g} / max {top * 1e3:.3g} ms ({frames} frames)"
+            )
+        elif not ticks.enabled:
+            detail = "free: ticks faster than the mocap frames"
+        else:
+            detail = "free: no mocap frames"
+        detail += f"; ticks locked {ticks.ticks_locked}, free {ticks.ticks_free}"
+        if locked != self._lock_reported:
+            logger.info("tick %d: %s", k, detail)
+        self._lock_reported = locked
+        self._lock_report_due = now + FRAME_LOCK_REPORT_S
+        self._record_event(ORCHESTRATOR, "frame_lock", k=k, detail=detail)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         """An agent's status message (rare): its state for the display and the policies."""
@@ -525,10 +599,14 @@ class InstanceManager:
         start = clock()
         t0 = start + (min(0.05, 5 * dt) if realtime else 0.0)
         if realtime:
+            self._ticks.start(t0)  # tick k due at t0 + k dt, or in step with the mocap frames
+            t0 = self._due(0)
             self._wait_until(t0)
         if not self._stop_reason:
             if realtime:
                 self._release(0, t0)
+                self._ticks.released()
+                self._note_frame_lock(0, clock())
             else:
                 self._release_window()
         next_display = start + 0.5
@@ -536,8 +614,9 @@ class InstanceManager:
             now = clock()
             if self._reanchor:  # realtime resume: tick k+1 is due one period from now
                 self._reanchor = False
-                t0 = now - tick.k * dt
-            due = t0 + (tick.k + 1) * dt if realtime else math.inf
+                with self._frame_guard:
+                    self._ticks.reanchor(now, tick.k)
+            due = self._due(tick.k + 1) if realtime else math.inf
             if self._paused:
                 wait_until = now + 0.1
             elif realtime:
@@ -560,9 +639,12 @@ class InstanceManager:
                     break
             if realtime:
                 if not self._paused and clock() >= due:
-                    self._realtime_step(t0)
+                    self._realtime_step(due)
             else:
                 self._lockstep_step()
+        if realtime:  # the lock's totals at the end
+            self._lock_report_due = -math.inf
+            self._note_frame_lock(tick.k, clock())
         summary = self.summary
         summary.wall_s = clock() - start
         summary.stop_reason = self._stop_reason
@@ -573,8 +655,9 @@ class InstanceManager:
         self._stop_agents(max(tick.base - 1, 0))
         return summary
 
-    def _realtime_step(self, t0: float) -> None:
-        """Close the tick in flight (late agents counted) and send the next one, due now."""
+    def _realtime_step(self, scheduled: float) -> None:
+        """Close the tick in flight (late agents counted) and send the next one, due now
+        (``scheduled`` [s, manager clock])."""
         tick, n_ticks = self._tick, self.experiment.n_ticks
         with self._lock:
             complete = tick.base_complete()
@@ -583,9 +666,11 @@ class InstanceManager:
             k = tick.released + 1
             if k < n_ticks:
                 missing = sorted(set(late) | self.lost)
-                tick.release(k, t0 + k * self.dt, self._clock())
+                tick.release(k, scheduled, self._clock())
         if k < n_ticks:
             self._send_tick(k, missing)
+            self._ticks.released()
+            self._note_frame_lock(k, self._clock())
         self._account(account)
         for j in late:
             self.summary.late[self.names[j]] += 1
