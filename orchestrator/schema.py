@@ -246,7 +246,7 @@ class MocapSection(_Table):
     """Release the realtime ticks in step with the frames (a lag after a frame comes)."""
     tick_lag_ms: float | None = Field(None, ge=0.0, le=1000.0)
     """A locked tick is released this long after its frame reaches the host [ms], under one
-    frame period (default: 2 ms, at most half a frame period)."""
+    frame period (default: 2 ms, at most a quarter of a frame period)."""
     sim: MocapSimSection | None = None
     """system = "sim" only: the simulated cameras."""
 

@@ -38,8 +38,12 @@ from typing import Any
 DEFAULT_RATE_HZ = 100.0
 DEFAULT_HOLD_FRAMES = 10
 DEFAULT_START_TIMEOUT_S = 5.0
-#: Default lag of a tick after the frame it is locked to [ms] (capped at half a frame period).
+#: Default lag of a tick after the frame it is locked to [ms] (capped at a quarter of a frame
+#: period: 1.04 ms at 240 Hz). Measured (docs/mocap.md): shorter lags miss frames whose poses
+#: are still on their way; each ms more is a ms more latency.
 DEFAULT_TICK_LAG_MS = 2.0
+#: The default lag is at most this fraction of a frame period.
+DEFAULT_TICK_LAG_PERIODS = 0.25
 
 
 @dataclass(frozen=True)
@@ -80,10 +84,11 @@ class MocapSettings:
     @property
     def tick_lag_s(self) -> float:
         """A locked tick is released this long after its frame reaches the host [s]
-        (``tick_lag_ms``, default :data:`DEFAULT_TICK_LAG_MS` capped at half a frame period)."""
+        (``tick_lag_ms``; default :data:`DEFAULT_TICK_LAG_MS`, at most a quarter of a frame
+        period)."""
         if self.tick_lag_ms is not None:
             return self.tick_lag_ms * 1e-3
-        return min(DEFAULT_TICK_LAG_MS * 1e-3, 0.5 / self.rate_hz)
+        return min(DEFAULT_TICK_LAG_MS * 1e-3, DEFAULT_TICK_LAG_PERIODS / self.rate_hz)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able data (for command lines); inverse of :meth:`from_dict`."""

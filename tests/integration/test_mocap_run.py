@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hilswarm.agents import bus
 from swarm_harness import (
     REPO,
     RunProcess,
@@ -174,8 +175,9 @@ def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
     """Ticks follow the camera frames: every tick is released on the frame grid (plus the lag)
     and most ticks' poses are no older than the lag and a small margin. The mocap process
     stopped (SIGSTOP) for a second: the ticks go on at once on the free clock, and lock
-    again when frames come back. (Free ticks at 23 Hz would meet the 100 Hz frames at every
-    phase: the pose's age spread over a whole frame period, the release instants too.)"""
+    again when frames come back; a pause and resume keeps the lock. (Free ticks at 23 Hz
+    would meet the 100 Hz frames at every phase: the pose's age spread over a whole frame
+    period, the release instants too.)"""
     lag_ms = 2.0
     experiment = variant(
         tmp_path,
@@ -206,6 +208,12 @@ def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
         finally:
             os.kill(pid, signal.SIGCONT)
         resumed_at = spy.last_tick()
+        wait_for(lambda: spy.last_tick() >= resumed_at + 40, 60, "ticks with frames again")
+        spy.control(bus.ControlCommand.PAUSE, "test pause")
+        wait_for(lambda: spy.manager_state() == "paused", 30, "the manager's paused status")
+        paused_at = spy.last_tick()
+        spy.control(bus.ControlCommand.RESUME, "test resume")
+        wait_for(lambda: spy.last_tick() >= paused_at + 30, 60, "ticks after the resume")
     finally:
         spy.close()
     assert run.wait(RUN_TIMEOUT_S) == 0, run.output()
@@ -226,10 +234,12 @@ def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
     assert ks.tolist() == list(range(ks.size)) and ks.size == int(8 * LOCK_RATE_HZ)
     dt = 1.0 / LOCK_RATE_HZ
     before = (ks >= 10) & (ks < stopped_at)
-    after = (ks > relocked[0]) & (ks < ks.size - 1)
+    after = (ks > relocked[0]) & (ks <= paused_at)
+    resumed = (ks > paused_at + 1) & (ks < ks.size - 1)
+    assert resumed.sum() >= 25, (paused_at, ks.size)
     # Locked: released on the frame grid, so modulo the frame period at one phase (the
     # estimate's noise: well under a millisecond); free ticks would cover the whole period.
-    for part in (before, after):
+    for part in (before, after, resumed):
         assert phase_spread(scheduled[part], FRAME_S) < 0.5e-3, phase_spread(
             scheduled[part], FRAME_S
         )
@@ -240,18 +250,19 @@ def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
     assert without.sum() >= 15, (free, relocked)
     np.testing.assert_allclose(np.diff(scheduled[without]), dt, atol=1e-6)
 
-    # Most locked ticks use the frame that just came: frame time -> the agent's sense within
-    # the lag and a margin (tick delivery, the bus to the manager); free ticks at 23 Hz would
-    # have ages spread over the whole 10 ms frame period (about half of them above 6 ms).
-    bound = lag_ms * 1e-3 + 4e-3
+    # Frame time -> tick: the agents sense a lag (and a margin: the frame's quickest way to
+    # the manager, the tick's way to the agent) after the newest frame, for most ticks. The
+    # frames come every 10 ms, so that is the age of the pose modulo a frame period (a pose
+    # still on its way when the tick came is one frame older: a whole period more). Free
+    # ticks at 23 Hz would sense at every phase of the frames: about 40 % in this 4 ms window.
     for agent in ("leader", "f1", "f2"):
         rows = recording[f"/{agent}/telemetry/mocap"]
-        by_k = {int(r["k"]): r["latency_s"] for r in rows if "k" in r}
-        if not by_k:  # rows without k: in tick order
-            by_k = dict(enumerate(r["latency_s"] for r in rows))
+        by_k = {int(r["k"]): r["latency_s"] for r in rows}
         latency = np.array(
-            [by_k[k] for k in ks[before | after] if k in by_k and np.isfinite(by_k[k])]
+            [by_k[k] for k in ks[before | after | resumed] if k in by_k and np.isfinite(by_k[k])]
         )
         assert latency.size > 80, (agent, latency.size)
-        assert np.mean(latency < bound) > 0.75, (agent, np.percentile(latency, [10, 50, 90]))
-        assert np.median(latency) < lag_ms * 1e-3 + 3e-3, (agent, np.median(latency))
+        since_frame = np.mod(latency, FRAME_S)
+        window = (since_frame >= lag_ms * 1e-3 - 1e-3) & (since_frame < lag_ms * 1e-3 + 3e-3)
+        assert np.mean(window) > 0.6, (agent, np.percentile(since_frame, [10, 50, 90]))
+        assert np.median(latency) < FRAME_S, agent  # mostly the newest frame's pose
