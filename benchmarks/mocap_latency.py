@@ -19,17 +19,21 @@ CLOCK_MONOTONIC (system-wide on Linux), so the difference needs no clock synchro
 With a real mocap system the frame time is the frame's arrival at the mocap process instead
 (docs/mocap.md), so the same figure there leaves out the system's own latency.
 
-The latency includes the pose's wait in the agent until its next tick: the cameras and the
-control loop run on independent clocks, so the pose a tick uses is the newest that arrived
-before it, on average half a frame period older than a pose used the instant it arrived.
-``within_frame`` is the fraction of ticks whose pose was less than one frame period old,
-i.e. ticks that used the newest frame the cameras had taken. With the ticks at evenly spread
-phases of the frame period, a tick misses the newest frame exactly when it comes less than the
-delivery time after that frame, so ``delivery_mean_ms`` = frame period x (1 - ``within_frame``)
-estimates the mean delivery frame time -> pose stored in the agent (valid while deliveries stay
-under one frame period). The control rate (default 23 Hz) is chosen so that the ticks sample
-every phase of the frame period evenly: the figures cover every phase, not the one phase that
-chance set at start (as a control rate dividing the frame rate, e.g. 20 Hz, would).
+The latency includes the pose's wait in the agent until its next tick. By default the run's
+ticks are locked to the frames (``[mocap] tick_lock``: each tick a lag after a frame,
+docs/mocap.md), so that wait is the lag and the tick's way to the agent; ``--free`` runs them free
+of the frames (``tick_lock = false``, as before that existed): the cameras and the control loop
+then run on independent clocks, so the pose a tick uses is the newest that arrived before it,
+on average half a frame period older than a pose used the instant it arrived. ``within_frame``
+is the fraction of ticks whose pose was less than one frame period old, i.e. ticks that used
+the newest frame the cameras had taken. With free ticks at evenly spread phases of the frame
+period, a tick misses the newest frame exactly when it comes less than the delivery time after
+that frame, so ``delivery_mean_ms`` = frame period x (1 - ``within_frame``) estimates the mean
+delivery frame time -> pose stored in the agent (valid while deliveries stay under one frame
+period; free ticks only, ``null`` when locked). The control rate (default 23 Hz) is chosen so
+that the ticks sample every phase of the frame period evenly: the figures cover every phase,
+not the one phase that chance set at start (as a control rate dividing the frame rate, e.g.
+20 Hz, would).
 
 Also measured (unless ``--no-subscriber``), and labelled "subscriber": the same simulator and
 mocap process with no run and no agent, and one subscription per body in this benchmark's
@@ -41,6 +45,7 @@ carried in every message). Target: p99 under one frame period, for 16 bodies at 
 
     python benchmarks/mocap_latency.py            # 16 agents, 100 and 240 Hz, 10 s each
     python benchmarks/mocap_latency.py --short    # CI size: 4 agents, 2 s per rate (< 60 s)
+    python benchmarks/mocap_latency.py --free     # ticks free of the frames, for comparison
 
 Prints the 1-minute load at the start, one line per rate with the verdict, and one JSON line
 per rate (``{"rate_hz": ...}``; keys in docs/mocap.md, "Benchmark"); exit status 0 when every
