@@ -358,8 +358,10 @@ class InstanceManager:
         arrival = self._clock()
         try:
             number, frame_time = frame_clock.decode(sample.payload.to_bytes())
-        except bus.BusMessageError:
+        except bus.BusMessageError as exc:
             self._frame_clock_malformed += 1  # only the mocap principal may put it
+            if self._frame_clock_malformed == 1:
+                logger.warning("mocap frame clock dropped: %s", exc)
             return
         lock = self._frame_lock
         if lock is not None:
