@@ -133,7 +133,7 @@ def test_every_answer_carries_the_gateway_and_radio_time_within_the_round_trip(
         for name, (reply, elapsed, (gateway_s, radio_s)) in _tick(boards, k).items():
             where = (kind, k, name, reply.status, elapsed, gateway_s, radio_s)
             assert math.isfinite(gateway_s) and math.isfinite(radio_s), where
-            assert 0.0 < gateway_s, where
+            assert gateway_s > 0.0, where
             assert gateway_s + radio_s <= elapsed, where  # the bus hops take the rest
             if reply.status & BoardStatus.STALE:  # the gateway's own answer: no radio
                 stale += 1
