@@ -832,8 +832,9 @@ class Agent:
             self.skipped += skipped
         x_hat = hw.model.x_hat if u_new is not None else None
         retries = _link_retries(hw.board) - retries
+        stages = _link_stages(hw.board, k > 0)  # the XBee gateway's part of link_s, if any
         timing = bus.AgentTiming(
-            t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries, *_link_stages(hw.board)
+            t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries, *stages
         )
         report = bus.encode_report(timing, u_new, x_hat)
         y_payload = bus.encode_vector(k, t, y)
@@ -995,11 +996,15 @@ def _link_retries(board: Any) -> int:
     return int(getattr(getattr(board, "stats", None), "retries", 0) or 0)
 
 
-def _link_stages(board: Any) -> tuple[float, float] | tuple[()]:
+def _link_stages(board: Any, exchanged: bool) -> tuple[float, float] | tuple[()]:
     """``(gateway_s, radio_s)`` [s] of the tick's link round trip for a link through the XBee
-    gateway (``take_link_stages``), ``()`` for other links (no gateway stage in the ledger)."""
+    gateway (``take_link_stages``; 0 when the tick made no exchange: tick 0 senses what
+    ``connect`` primed), ``()`` for other links (no gateway stage in the ledger)."""
     take = getattr(board, "take_link_stages", None)
-    return () if take is None else take()
+    if take is None:
+        return ()
+    stages = take()
+    return stages if exchanged else (0.0, 0.0)
 
 
 def _jsonable(value: Any) -> Any:

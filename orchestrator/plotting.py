@@ -538,7 +538,7 @@ def _latency_figure(data: RecordingData, title: str) -> Figure | None:
         axis.set_xlabel("experiment time t [s]")
         axis.grid(True, alpha=0.3)
         _mark_events(axis, data.events)
-    axes[0, 0].legend(loc="upper right", fontsize="small", ncols=len(labels))
+    axes[0, 0].legend(loc="upper right", fontsize="small", ncols=min(len(labels), 5))
     bars = axes[n, 0]
     names = list(ledger)
     left = np.zeros(len(names))

@@ -71,6 +71,9 @@ _NO_TIMING = (0.0, 0.0, 0.0, 0.0, 0, 0)
 _FLOATS: dict[int, struct.Struct] = {}
 #: Y frame layouts a FrameRecorder remembers (one per frame length).
 _Y_LAYOUTS = 256
+#: Tick reports an agent may have ahead of (or left behind) the ticks accounted, before the
+#: older ones are dropped.
+_TIMINGS_KEPT = 64
 
 
 def _floats(n: int) -> struct.Struct:
@@ -221,9 +224,10 @@ class FrameRecorder:
         self._y_topics = [f"/{name}/y" for name in self.names]
         self._u_topics = [f"/{name}/u" for name in self.names]
         self._x_topics = [f"/{name}/x_hat" for name in self.names]
-        # Per agent, (k, (compute_s, actuate_s, sense_s, link_s, skipped, retries[, gateway_s,
-        # radio_s])) of its latest y: tick k's ledger.
-        self._timings: list[tuple[int, tuple[Any, ...]] | None] = [None] * len(self.names)
+        # Per agent, k -> (compute_s, actuate_s, sense_s, link_s, skipped, retries[, gateway_s,
+        # radio_s]) of its y_k not yet in a tick's ledger (in lockstep an agent's y_{k+1} can
+        # come before tick k is complete).
+        self._timings: list[dict[int, tuple[Any, ...]]] = [{} for _ in self.names]
         self._ticks_registered = False
         self._wall = recorder.experiment_clock  # /orchestrator/ticks carries wall_ns
         self._plain_y: set[int] = set()
@@ -325,7 +329,7 @@ class FrameRecorder:
 
     def _y(self, frame: bytes, rows: list[tuple[str, int, float, Sequence[float], int]]) -> None:
         i, log_ns, k, t, values, timing, u, x_hat = self._unpack_y(frame)
-        self._timings[i] = (k, timing)
+        self._timings[i][k] = timing
         if i not in self._plain_y and self._y_fields_match(i, len(values)):
             rows.append((self._y_topics[i], k, t, values, log_ns))
         else:
@@ -447,12 +451,15 @@ class FrameRecorder:
         answered: list[tuple[str, int, int, int, int]] = []  # template, numbers, counts
         timings = self._timings
         for i, answer in enumerate(answers):
+            kept = timings[i]
+            timing = kept.pop(k, None)
+            if len(kept) > _TIMINGS_KEPT:  # of ticks never accounted (no answer in time)
+                for old in [j for j in kept if j < k]:
+                    del kept[old]
             if math.isnan(answer):  # no answer
                 continue
             start = len(numbers)
-            entry = timings[i]
-            if entry is not None and entry[0] == k:
-                timing = entry[1]
+            if timing is not None:
                 compute, actuate, sense, link, skipped, retries = timing[:6]
                 # the rest of the answer time: bus delivery both ways (and, in lockstep, the
                 # wait for the neighbours' outputs)
