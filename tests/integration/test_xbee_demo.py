@@ -160,7 +160,8 @@ def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
         stale = counted[-1]  # the last status holds the total
         assert f"note: agent {name}: {stale} stale samples" in output, output
         own = [entry for entry in ledger[1:] if entry["radio_s"] == 0.0]
-        assert len(own) == stale, (name, len(own), stale)
+        # the counter also has the exchange that pushes the safe outputs at the end (no tick)
+        assert len(own) <= stale <= len(own) + 1, (name, len(own), stale)
         if answer == "at_once":  # every answer but the robot's first reply
             assert stale >= 95, (name, stale)
         else:  # reply_every = 5: the robot's own replies every 5th tick, through the radio
