@@ -17,6 +17,10 @@ the robot sent, and an agent that ignores it reads the same stream):
   its answer's air and UART back; in broadcast mode from the BCAST carrying the robot's
   section). 0 for an answer the gateway gives itself.
 
+The gateway keeps one arrival time per robot, the newest: when an agent's next request comes in
+before the previous one went to the UART (the gateway is behind), the older answer's
+``gateway_s`` counts from the newer request's arrival and is too low by the time between them.
+
 Layout: two little-endian float32, 8 bytes. A sample without an attachment (or with one of
 another size) carries no stage times. The agent's side (:class:`~.transport.BusPort`) keeps the
 stage times of the last sample received since its last write; the agent puts them in its tick
