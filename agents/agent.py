@@ -49,8 +49,10 @@ counters: ``malformed`` (messages that could not be decoded, by key: ``tick``, `
 ``control``, ``set``, ``mocap``: body poses of a mocap pose source), ``dropped`` (well-formed
 messages rejected by the tick engine, by reason: ``tick_ahead``, ``tick_past``, ``tick_time``,
 ``tick_mode``, ``tick_missing``, ``y_ahead``, ``y_duplicate``, ``y_size``, and ``stale``
-realtime ticks skipped), ``skipped`` (ticks this agent missed in total) and ``link_faults``
-(board link faults ridden out). A status of kind ``inputs`` is published when these counters
+realtime ticks skipped), ``skipped`` (ticks this agent missed in total), ``link_faults``
+(board link faults ridden out) and ``stale_samples`` (board answers marked STALE: with an XBee
+gateway in broadcast mode, the robot's last samples the gateway answered with; the mode's
+normal operation, not a fault). A status of kind ``inputs`` is published when these counters
 change (at most once per :data:`COUNTERS_PERIOD_S`).
 """
 
@@ -299,7 +301,15 @@ class Agent:
             fields["skipped"] = self.skipped
         if self.link_faults:
             fields["link_faults"] = self.link_faults
+        stale = self._stale_samples()
+        if stale:
+            fields["stale_samples"] = stale
         return fields
+
+    def _stale_samples(self) -> int:
+        """Board answers marked STALE so far (0 for links that do not count them)."""
+        board = self.hardware.board if self.hardware is not None else None
+        return int(getattr(getattr(board, "stats", None), "stale_samples", 0) or 0)
 
     def publish_status(self, fields: Mapping[str, Any], *, detail: str = "") -> None:
         """Publish a status message (JSON) with the current tick, state and counters."""
@@ -331,6 +341,7 @@ class Agent:
                 *self.malformed.values(),
                 self.skipped,
                 self.link_faults,
+                self._stale_samples(),
             )
         if snapshot != self._counters_published and any(snapshot):
             self._counters_published = snapshot
@@ -821,7 +832,10 @@ class Agent:
             self.skipped += skipped
         x_hat = hw.model.x_hat if u_new is not None else None
         retries = _link_retries(hw.board) - retries
-        timing = bus.AgentTiming(t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries)
+        stages = _link_stages(hw.board, k > 0)  # the XBee gateway's part of link_s, if any
+        timing = bus.AgentTiming(
+            t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries, *stages
+        )
         report = bus.encode_report(timing, u_new, x_hat)
         y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
@@ -980,6 +994,17 @@ MANAGER_NAME = "_manager"
 def _link_retries(board: Any) -> int:
     """Re-sends of board requests so far (0 for links that do not count them)."""
     return int(getattr(getattr(board, "stats", None), "retries", 0) or 0)
+
+
+def _link_stages(board: Any, exchanged: bool) -> tuple[float, float] | tuple[()]:
+    """``(gateway_s, radio_s)`` [s] of the tick's link round trip for a link through the XBee
+    gateway (``take_link_stages``; 0 when the tick made no exchange: tick 0 senses what
+    ``connect`` primed), ``()`` for other links (no gateway stage in the ledger)."""
+    take = getattr(board, "take_link_stages", None)
+    if take is None:
+        return ()
+    stages = take()
+    return stages if exchanged else (0.0, 0.0)
 
 
 def _jsonable(value: Any) -> Any:
