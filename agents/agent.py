@@ -49,15 +49,17 @@ counters: ``malformed`` (messages that could not be decoded, by key: ``tick``, `
 ``control``, ``set``, ``mocap``: body poses of a mocap pose source), ``dropped`` (well-formed
 messages rejected by the tick engine, by reason: ``tick_ahead``, ``tick_past``, ``tick_time``,
 ``tick_mode``, ``tick_missing``, ``y_ahead``, ``y_duplicate``, ``y_size``, ``schedule_dt``,
-``schedule_time``, and ``stale``
-realtime ticks skipped), ``skipped`` (ticks this agent missed in total) and ``link_faults``
-(board link faults ridden out). A self-clocked realtime agent (it keeps the manager's schedule
-itself, see :class:`~hilswarm.agents.bus.ScheduleMessage`) adds ``inputs_missing``
-({neighbour: [tick, ...]}): the ticks since its previous status that used no data for that
-neighbour (its ``y_{k-1}`` was not in at the tick's due time) although the manager had not
-reported it lost. A status of kind ``inputs`` is published when these counters change or
-such ticks are pending (at most once per :data:`COUNTERS_PERIOD_S`), and every status (the
-last one of the run included) carries the ticks noted since the previous one.
+``schedule_time``, and ``stale`` realtime ticks skipped), ``skipped`` (ticks this agent missed
+in total), ``link_faults`` (board link faults ridden out) and ``stale_samples`` (board answers
+marked STALE: with an XBee gateway in broadcast mode, the robot's last samples the gateway
+answered with; the mode's normal operation, not a fault). A self-clocked realtime agent (it
+keeps the manager's schedule itself, see :class:`~hilswarm.agents.bus.ScheduleMessage`) adds
+``inputs_missing`` ({neighbour: [tick, ...]}): the ticks since its previous status that used
+no data for that neighbour (its ``y_{k-1}`` was not in at the tick's due time) although the
+manager had not reported it lost. A status of kind ``inputs`` is published when these
+counters change or such ticks are pending (at most once per :data:`COUNTERS_PERIOD_S`), and
+every status (the last one of the run included) carries the ticks noted since the previous
+one.
 """
 
 from __future__ import annotations
@@ -308,7 +310,15 @@ class Agent:
             fields["skipped"] = self.skipped
         if self.link_faults:
             fields["link_faults"] = self.link_faults
+        stale = self._stale_samples()
+        if stale:
+            fields["stale_samples"] = stale
         return fields
+
+    def _stale_samples(self) -> int:
+        """Board answers marked STALE so far (0 for links that do not count them)."""
+        board = self.hardware.board if self.hardware is not None else None
+        return int(getattr(getattr(board, "stats", None), "stale_samples", 0) or 0)
 
     def publish_status(self, fields: Mapping[str, Any], *, detail: str = "") -> None:
         """Publish a status message (JSON) with the current tick, state and counters."""
@@ -340,6 +350,7 @@ class Agent:
                 *self.malformed.values(),
                 self.skipped,
                 self.link_faults,
+                self._stale_samples(),
             )
             pending = bool(self.engine.inputs_missing)
         if pending or (snapshot != self._counters_published and any(snapshot)):
@@ -852,7 +863,10 @@ class Agent:
             self.skipped += skipped
         x_hat = hw.model.x_hat if u_new is not None else None
         retries = _link_retries(hw.board) - retries
-        timing = bus.AgentTiming(t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries)
+        stages = _link_stages(hw.board, k > 0)  # the XBee gateway's part of link_s, if any
+        timing = bus.AgentTiming(
+            t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries, *stages
+        )
         report = bus.encode_report(timing, u_new, x_hat)
         y_payload = bus.encode_vector(k, t, y)
         if getattr(vehicle, "safe_mode", False) and lifecycle.state_id != "safe":
@@ -1011,6 +1025,17 @@ MANAGER_NAME = "_manager"
 def _link_retries(board: Any) -> int:
     """Re-sends of board requests so far (0 for links that do not count them)."""
     return int(getattr(getattr(board, "stats", None), "retries", 0) or 0)
+
+
+def _link_stages(board: Any, exchanged: bool) -> tuple[float, float] | tuple[()]:
+    """``(gateway_s, radio_s)`` [s] of the tick's link round trip for a link through the XBee
+    gateway (``take_link_stages``; 0 when the tick made no exchange: tick 0 senses what
+    ``connect`` primed), ``()`` for other links (no gateway stage in the ledger)."""
+    take = getattr(board, "take_link_stages", None)
+    if take is None:
+        return ()
+    stages = take()
+    return stages if exchanged else (0.0, 0.0)
 
 
 def _jsonable(value: Any) -> Any:

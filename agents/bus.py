@@ -35,7 +35,9 @@ is ever consumed):
 * ``alive/<name>`` — the agent's liveliness token (kill -9 is seen when it disappears).
 * ``mocap/<body>`` — a rigid body's pose from the experiment's mocap process
   (:mod:`hilswarm.agents.mocap.message`); ``mocap_status`` — that process's status (JSON);
-  ``mocap_truth/<body>`` — a simulated plant's true pose, for the mocap simulator only.
+  ``mocap_truth/<body>`` — a simulated plant's true pose, for the mocap simulator only;
+  ``mocap_clock`` — the frame clock (frame number and time per frame,
+  :mod:`hilswarm.agents.mocap.frame_clock`) the manager locks the realtime ticks to.
 
 Agents subscribe only to explicit keys, never wildcards, so a non-neighbour's output is never
 delivered to them. The orchestrator's recorder may use wildcards.
@@ -243,6 +245,11 @@ class BusKeys:
         """Key of the mocap process's status (JSON: connected, bodies seen, server lost)."""
         return f"{self.prefix}/mocap_status"
 
+    @property
+    def mocap_clock(self) -> str:
+        """Key of the mocap process's frame clock (frame number and time, once per frame)."""
+        return f"{self.prefix}/mocap_clock"
+
     def mocap_truth(self, body: str) -> str:
         """Key of a simulated body's true pose (agents -> the mocap simulator only)."""
         check_key_name(body, what="mocap body")
@@ -298,6 +305,7 @@ TICK_REALTIME = 0x01
 TICK_SCHEDULE = 0x02
 _SCHEDULE_TAIL = struct.Struct("<qdd")
 _REPORT_HEADER = struct.Struct("<ddddHHHH")
+_GATEWAY_STAGES = struct.Struct("<dd")
 
 
 def encode_vector(k: int, t: float, values: np.ndarray | Sequence[float]) -> bytes:
@@ -463,6 +471,10 @@ class AgentTiming:
         link_s: the board round trip (request out, board turnaround, reply in; re-sends
             included) [s, wall clock]; 0 without a board.
         retries: re-sends of the board request in this tick (links that count them).
+        gateway_s: of ``link_s``, the XBee gateway's own time (queueing, gathering, packing)
+            [s, the gateway's clock]; ``None`` for links without a gateway.
+        radio_s: of ``link_s``, the radio's time as the gateway measures it (UARTs, air, the
+            robot's turnaround) [s, the gateway's clock]; ``None`` for links without a gateway.
     """
 
     compute_s: float = 0.0
@@ -471,6 +483,8 @@ class AgentTiming:
     skipped: int = 0
     link_s: float = 0.0
     retries: int = 0
+    gateway_s: float | None = None
+    radio_s: float | None = None
 
 
 def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray | None) -> bytes:
@@ -479,11 +493,16 @@ def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray |
     Layout: timing (compute, actuate, sense, link [s] as 4 float64; skipped ticks and link
     retries as 2 uint16, saturating), the sizes of u and x_hat (2 uint16), then u_k (the input
     applied over [t_{k-1}, t_k); empty at tick 0 and when not actuating) and x_hat_k (the
-    controller state after computing u_k), as float64. The recorder unpacks it in
-    ``orchestrator/record_stream.py``.
+    controller state after computing u_k), as float64; for a link through the XBee gateway
+    (``timing.gateway_s`` set) then ``gateway_s`` and ``radio_s`` [s] as 2 float64. The recorder
+    unpacks it in ``orchestrator/record_stream.py``.
     """
     u_bytes = b"" if u is None else np.asarray(u, dtype="<f8").tobytes()
     x_bytes = b"" if x_hat is None else np.asarray(x_hat, dtype="<f8").tobytes()
+    stages = b""
+    if timing.gateway_s is not None:
+        radio_s = 0.0 if timing.radio_s is None else timing.radio_s
+        stages = _GATEWAY_STAGES.pack(timing.gateway_s, radio_s)
     return (
         _REPORT_HEADER.pack(
             timing.compute_s,
@@ -497,6 +516,7 @@ def encode_report(timing: AgentTiming, u: np.ndarray | None, x_hat: np.ndarray |
         )
         + u_bytes
         + x_bytes
+        + stages
     )
 
 
@@ -688,9 +708,11 @@ def decode_control(payload: bytes | bytearray | memoryview) -> tuple[ControlComm
 
 
 #: Counter fields an agent's status message may carry (see ``hilswarm.agents.agent``):
-#: ``malformed`` {key: count}, ``dropped`` {reason: count}, ``skipped`` (ticks missed) and
-#: ``link_faults`` (board link faults). Only non-zero ones are sent; the recorder keeps them.
-STATUS_COUNTER_FIELDS = ("malformed", "dropped", "skipped", "link_faults")
+#: ``malformed`` {key: count}, ``dropped`` {reason: count}, ``skipped`` (ticks missed),
+#: ``link_faults`` (board link faults) and ``stale_samples`` (board answers marked STALE: the
+#: XBee gateway's answers from a robot's last samples). Only non-zero ones are sent; the
+#: recorder keeps them.
+STATUS_COUNTER_FIELDS = ("malformed", "dropped", "skipped", "link_faults", "stale_samples")
 
 
 def encode_json(data: dict[str, Any]) -> bytes:

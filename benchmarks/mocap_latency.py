@@ -19,17 +19,21 @@ CLOCK_MONOTONIC (system-wide on Linux), so the difference needs no clock synchro
 With a real mocap system the frame time is the frame's arrival at the mocap process instead
 (docs/mocap.md), so the same figure there leaves out the system's own latency.
 
-The latency includes the pose's wait in the agent until its next tick: the cameras and the
-control loop run on independent clocks, so the pose a tick uses is the newest that arrived
-before it, on average half a frame period older than a pose used the instant it arrived.
-``within_frame`` is the fraction of ticks whose pose was less than one frame period old,
-i.e. ticks that used the newest frame the cameras had taken. With the ticks at evenly spread
-phases of the frame period, a tick misses the newest frame exactly when it comes less than the
-delivery time after that frame, so ``delivery_mean_ms`` = frame period x (1 - ``within_frame``)
-estimates the mean delivery frame time -> pose stored in the agent (valid while deliveries stay
-under one frame period). The control rate (default 23 Hz) is chosen so that the ticks sample
-every phase of the frame period evenly: the figures cover every phase, not the one phase that
-chance set at start (as a control rate dividing the frame rate, e.g. 20 Hz, would).
+The latency includes the pose's wait in the agent until its next tick. By default the run's
+ticks are locked to the frames (``[mocap] tick_lock``: each tick a lag after a frame,
+docs/mocap.md), so that wait is the lag and the tick's way to the agent; ``--free`` runs them free
+of the frames (``tick_lock = false``, as before that existed): the cameras and the control loop
+then run on independent clocks, so the pose a tick uses is the newest that arrived before it,
+on average half a frame period older than a pose used the instant it arrived. ``within_frame``
+is the fraction of ticks whose pose was less than one frame period old, i.e. ticks that used
+the newest frame the cameras had taken. With free ticks at evenly spread phases of the frame
+period, a tick misses the newest frame exactly when it comes less than the delivery time after
+that frame, so ``delivery_mean_ms`` = frame period x (1 - ``within_frame``) estimates the mean
+delivery frame time -> pose stored in the agent (valid while deliveries stay under one frame
+period; free ticks only, ``null`` when locked). The control rate (default 23 Hz) is chosen so
+that the ticks sample every phase of the frame period evenly: the figures cover every phase,
+not the one phase that chance set at start (as a control rate dividing the frame rate, e.g.
+20 Hz, would).
 
 Also measured (unless ``--no-subscriber``), and labelled "subscriber": the same simulator and
 mocap process with no run and no agent, and one subscription per body in this benchmark's
@@ -41,6 +45,7 @@ carried in every message). Target: p99 under one frame period, for 16 bodies at 
 
     python benchmarks/mocap_latency.py            # 16 agents, 100 and 240 Hz, 10 s each
     python benchmarks/mocap_latency.py --short    # CI size: 4 agents, 2 s per rate (< 60 s)
+    python benchmarks/mocap_latency.py --free     # ticks free of the frames, for comparison
 
 Prints the 1-minute load at the start, one line per rate with the verdict, and one JSON line
 per rate (``{"rate_hz": ...}``; keys in docs/mocap.md, "Benchmark"); exit status 0 when every
@@ -54,6 +59,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import select
 import signal
 import subprocess
@@ -105,12 +111,15 @@ def percentile_ms(values: np.ndarray, q: float) -> float | None:
 
 
 def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float,
-                    seconds: float) -> str:  # fmt: skip
+                    seconds: float, locked: bool = True,
+                    lag_ms: float | None = None) -> str:  # fmt: skip
     """The experiment: ``agents`` Frisbee bots in a lead/follow chain, poses from ``sim``.
 
     Agent ``a00`` drives a 1 m square of waypoints; agent ``aNN`` follows ``a(NN-1)`` at 0.3 m
     (the demo ``graphs/lead_follow_mocap.toml``, longer). Camera noise as in the demo, no
-    simulated camera latency and no dropouts: the figures are the software path's.
+    simulated camera latency and no dropouts: the figures are the software path's. ``locked``:
+    the ticks in step with the frames (``[mocap] tick_lock``, the default), ``lag_ms`` its
+    ``tick_lag_ms`` (``None``: the default).
     """
     names = [f"a{i:02d}" for i in range(agents)]
     rows = [[1 if j == i - 1 else 0 for j in range(agents)] for i in range(agents)]
@@ -130,6 +139,8 @@ def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float
         f"rate_hz = {mocap_rate_hz!r}",
         f"hold_frames = {hold_frames}",
         "start_timeout_s = 30.0",
+        f"tick_lock = {'true' if locked else 'false'}",
+        *([] if lag_ms is None else [f"tick_lag_ms = {lag_ms!r}"]),
         "",
         "[mocap.sim]",
         "noise_std_m = 0.002",
@@ -236,8 +247,24 @@ def controller_latencies(out: Path, agents: int) -> tuple[np.ndarray, np.ndarray
     return np.array(values), np.array(deliveries), ticks, ticks - len(values)
 
 
-def measure_controller(rate_hz: float, agents: int, seconds: float,
-                       control_rate_hz: float) -> dict[str, Any]:  # fmt: skip
+def ticks_locked(out: Path) -> float | None:
+    """Fraction of the run's ticks the manager released locked to the frames (its last
+    ``frame_lock`` record on ``/orchestrator/status``); ``None``: no record."""
+    last = None
+    if out.exists():
+        for _topic, _time, row in iter_messages(out, ["/orchestrator/status"]):
+            if row.get("state") == "frame_lock":
+                last = str(row.get("detail", ""))
+    found = re.search(r"ticks locked (\d+), free (\d+)", last or "")
+    if found is None:
+        return None
+    locked, free = int(found[1]), int(found[2])
+    return round(locked / (locked + free), 4) if locked + free else None
+
+
+def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate_hz: float,
+                       *, locked: bool = True,
+                       lag_ms: float | None = None) -> dict[str, Any]:  # fmt: skip
     """One ``hilswarm run`` at mocap rate ``rate_hz``: frame time -> controller figures."""
     load = load_1min()
     with tempfile.TemporaryDirectory(prefix="mocap_latency-") as tmp:
@@ -245,13 +272,16 @@ def measure_controller(rate_hz: float, agents: int, seconds: float,
         experiment = folder / "experiment.toml"
         experiment.write_text(
             experiment_text(agents=agents, mocap_rate_hz=rate_hz,
-                            control_rate_hz=control_rate_hz, seconds=WARMUP_S + seconds)
+                            control_rate_hz=control_rate_hz, seconds=WARMUP_S + seconds,
+                            locked=locked, lag_ms=lag_ms)
         )  # fmt: skip
         began = time.monotonic()
         status, out, tail = run_experiment(folder, experiment, WARMUP_S + seconds)
         wall = time.monotonic() - began
         latency, delivery, ticks, lost = controller_latencies(out, agents)
+        locked_fraction = ticks_locked(out)
     period = 1.0 / rate_hz
+    settings = MocapSettings(system="sim", rate_hz=rate_hz, tick_lag_ms=lag_ms)
     p99 = percentile_ms(latency, 99)
     within = round(float(np.mean(latency < period)), 4) if latency.size else None
     expected = round(agents * control_rate_hz * seconds)
@@ -272,10 +302,16 @@ def measure_controller(rate_hz: float, agents: int, seconds: float,
         "min_ms": round(float(latency.min()) * 1e3, 3) if latency.size else None,
         "max_ms": round(float(latency.max()) * 1e3, 3) if latency.size else None,
         "within_frame": within,
-        "delivery_mean_ms": None if within is None else round((1.0 - within) * period * 1e3, 3),
+        # the estimate assumes ticks at every phase of the frames: free ticks only
+        "delivery_mean_ms": None
+        if within is None or locked
+        else round((1.0 - within) * period * 1e3, 3),
         "delivery_p50_ms": percentile_ms(delivery, 50),
         "delivery_p99_ms": percentile_ms(delivery, 99),
         "meets_target": p99 is not None and p99 < period * 1e3,
+        "locked": locked,
+        "tick_lag_ms": round(settings.tick_lag_s * 1e3, 3) if locked else None,
+        "ticks_locked": locked_fraction,
         "load_1min": load,
         "run_exit": status,
         "run_wall_s": round(wall, 1),
@@ -403,6 +439,17 @@ def main(argv: list[str] | None = None) -> int:
         help=f"the agents' control rate [Hz] (default {CONTROL_RATE_HZ:g})",
     )
     parser.add_argument(
+        "--free",
+        action="store_true",
+        help="ticks free of the frames ([mocap] tick_lock = false; before this version)",
+    )
+    parser.add_argument(
+        "--lag-ms",
+        type=float,
+        default=None,
+        help="[mocap] tick_lag_ms of the locked ticks (default: the experiment default)",
+    )
+    parser.add_argument(
         "--no-subscriber",
         action="store_true",
         help="skip the subscriber-level figure (mocap path without a run)",
@@ -416,7 +463,9 @@ def main(argv: list[str] | None = None) -> int:
           f"stamp and the agent's sense, one machine clock)")  # fmt: skip
     failed = False
     for rate in args.rates:
-        result = measure_controller(rate, agents, seconds, args.control_rate)
+        result = measure_controller(
+            rate, agents, seconds, args.control_rate, locked=not args.free, lag_ms=args.lag_ms
+        )
         tail = result.pop("_tail")
         subscriber: dict[str, Any] = {
             "subscriber_p50_ms": None, "subscriber_p99_ms": None, "subscriber_delivered": None,
@@ -436,7 +485,13 @@ def main(argv: list[str] | None = None) -> int:
             f"{'-' if within is None else f'{within * 100:.1f}%'} of ticks used a pose under "
             f"one frame old (mean delivery to the agent, estimated from it: "
             f"{result['delivery_mean_ms']} ms); {verdict} the target p99 < "
-            f"{result['target_p99_ms']} ms"
+            f"{result['target_p99_ms']} ms; "
+            + (
+                f"ticks locked to the frames ({result['ticks_locked']} of them), lag "
+                f"{result['tick_lag_ms']} ms"
+                if result["locked"]
+                else "ticks free of the frames"
+            )
         )
         print(
             f"  of which the delivery, frame time -> the pose's arrival at the agent (recorded): "

@@ -29,9 +29,10 @@ What follows from the experiment (:func:`run_grants`):
 * only the manager (local) puts ``tick`` and ``control``.
 
 Other processes the orchestrator starts get principals of their own through ``extra``:
-:data:`MOCAP_GRANTS` (the mocap process and its simulator: put ``mocap/**`` and
-``mocap_status``, hear ``mocap_truth/**``) and :data:`GATEWAY_GRANTS` (the XBee gateway: put
-and subscribe ``agent/*/link/**``, put ``gateway/{status,stats}``, hear ``gateway/sim``).
+:data:`MOCAP_GRANTS` (the mocap process and its simulator: put ``mocap/**``,
+``mocap_status`` and ``mocap_clock``, hear ``mocap_truth/**``) and :data:`GATEWAY_GRANTS`
+(the XBee gateway: put and subscribe ``agent/*/link/**``, put ``gateway/{status,stats}``, hear
+``gateway/sim``).
 """
 
 from __future__ import annotations
@@ -71,10 +72,11 @@ VIEWER = "viewer"
 VIEWER_GRANTS = Grants(subscribe=("**",), watch_tokens=("alive/*",))
 #: User name of the motion-capture principal (the mocap process and its simulator).
 MOCAP = "mocap"
-#: The motion-capture processes: publish poses under ``mocap/`` and their status; the
-#: simulator hears the simulated plants' true poses.
+#: The motion-capture processes: publish poses under ``mocap/``, their status and the frame
+#: clock (read by the manager, which the router does not filter, and viewers); the simulator
+#: hears the simulated plants' true poses.
 MOCAP_GRANTS = Grants(
-    put=("mocap/**", "mocap_status"),
+    put=("mocap/**", "mocap_status", "mocap_clock"),
     subscribe=("mocap_truth/**",),
     tokens=("alive/_mocap",),
 )

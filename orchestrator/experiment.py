@@ -778,6 +778,15 @@ def mocap_settings(
         )
     if section.sim is not None and section.system != "sim":
         problems.append(Problem(file, key_path(where, ("sim",)), 'only for system = "sim"'))
+    if section.tick_lag_ms is not None and section.tick_lag_ms >= 1000.0 / section.rate_hz:
+        problems.append(
+            Problem(
+                file,
+                key_path(where, ("tick_lag_ms",)),
+                f"{section.tick_lag_ms:g} ms is not under one frame period "
+                f"({1000.0 / section.rate_hz:.3g} ms at rate_hz = {section.rate_hz:g})",
+            )
+        )
     if problems:
         return None, problems
     from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap files only

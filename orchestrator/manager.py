@@ -15,14 +15,18 @@ subscription is known), and then sends ticks:
 * ``realtime`` — tick k is sent at ``T0 + k * dt`` on the monotonic clock (drift free). Agents
   whose y_k is not in when tick k+1 is due are counted *late* for that tick (per agent) and
   listed as missing in tick k+1, so their neighbours see ``None``; late answers are recorded
-  and counted, never silently absorbed.
+  and counted, never silently absorbed. With ``[mocap]`` (``tick_lock``, the default) the
+  ticks are released in step with the camera frames instead: tick k a small lag after the
+  first frame at or after ``T0 + k * dt``, falling back to the free grid at once when frames
+  stop (:mod:`hilswarm.orchestrator.frame_lock`).
 * ``realtime``, **self-clocked** (``realtime_clock = "shared"``, only when every agent runs on
   this host and no XBee gateway follows the ticks): instead of one tick message per period the
   manager sends a *schedule* (:class:`~hilswarm.agents.bus.ScheduleMessage`: T0 on
   CLOCK_MONOTONIC, dt, first and last tick) at the start, on every change (a pause ends it
-  after the next tick, a resume re-anchors it, a lost agent is announced) and every
-  :data:`SCHEDULE_REPEAT_S`; each agent wakes itself at ``T0 + k * dt``. The manager still
-  closes tick k when tick k+1 is due and accounts it exactly as above (late: y_k not in).
+  after the next tick, a resume re-anchors it, a lost agent is announced, the frame lock moves
+  the due time of the next tick) and every :data:`SCHEDULE_REPEAT_S`; each agent wakes itself
+  at ``T0 + k * dt``. The manager still closes tick k when tick k+1 is due and accounts it
+  exactly as above (late: y_k not in).
 
 Every tick is accounted on ``/orchestrator/ticks``: scheduled and send times, completion, late
 and missing agents, and each agent's answer latency and sense/compute/actuate times.
@@ -49,7 +53,9 @@ import numpy as np
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
+from hilswarm.agents.mocap import frame_clock
 from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
 from hilswarm.orchestrator.outcome import COUNTER_NAMES
 from hilswarm.orchestrator.record_stream import (
     ORCHESTRATOR,
@@ -88,6 +94,11 @@ DEFAULT_FLUSH_PERIOD_S = 0.02
 #: Self-clocked realtime: the schedule is repeated this often [s] (a forged or lost schedule
 #: holds at most this long).
 SCHEDULE_REPEAT_S = 1.0
+#: Self-clocked realtime: the frame lock moving the next tick's due time by more than this [s]
+#: sends a new schedule.
+SCHEDULE_MOVE_S = 20e-6
+#: Realtime with a frame lock: period of the ``frame_lock`` record while locked [s].
+FRAME_LOCK_REPORT_S = 10.0
 
 # Event kinds of the ticking thread's queue (rare: not one per message).
 _ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE = range(6)
@@ -239,6 +250,19 @@ class InstanceManager:
         )
         self._completion = np.full(max(experiment.n_ticks, 1), np.nan)
         self._clock_origin = clock()
+        # Realtime ticks in step with the mocap frames (frame_lock): the lock's state is
+        # shared with the frame-clock callback, guarded by its own small lock.
+        mocap = getattr(experiment, "mocap", None)
+        self._frame_guard = threading.Lock()
+        self._frame_lock: FrameLock | None = None
+        if self._realtime and mocap is not None and mocap.tick_lock:
+            self._frame_lock = FrameLock(1.0 / mocap.rate_hz)
+        self._ticks = TickClock(
+            self.dt, self._frame_lock, mocap.tick_lag_s if self._frame_lock is not None else 0.0
+        )
+        self._lock_reported: bool | None = None  # locked at the last frame_lock record
+        self._lock_report_due = 0.0
+        self._frame_clock_malformed = 0
 
     # -- bus ---------------------------------------------------------------------------------
 
@@ -284,6 +308,13 @@ class InstanceManager:
                         key, zenoh.handlers.Callback(callback, indirect=False)
                     )
                 )
+        if self._frame_lock is not None:
+            entities.append(
+                session.declare_subscriber(
+                    keys.mocap_clock,
+                    zenoh.handlers.Callback(self._on_frame_clock, indirect=False),
+                )
+            )
         entities.append(
             session.declare_subscriber(
                 keys.manager_request,
@@ -355,6 +386,55 @@ class InstanceManager:
                         put((_COMPLETE, k))
 
         return on_y
+
+    def _on_frame_clock(self, sample: zenoh.Sample) -> None:
+        """A mocap frame's clock (100-240 Hz, a Zenoh thread): one update of the frame lock."""
+        arrival = self._clock()
+        try:
+            number, frame_time = frame_clock.decode(sample.payload.to_bytes())
+        except bus.BusMessageError as exc:
+            self._frame_clock_malformed += 1  # only the mocap principal may put it
+            if self._frame_clock_malformed == 1:
+                logger.warning("mocap frame clock dropped: %s", exc)
+            return
+        lock = self._frame_lock
+        if lock is not None:
+            with self._frame_guard:
+                lock.on_frame(number, frame_time, arrival)
+
+    def _due(self, k: int) -> float:
+        """Realtime: the due time of tick ``k`` [s, manager clock], locked or free."""
+        with self._frame_guard:
+            return self._ticks.due(k, self._clock())
+
+    def _note_frame_lock(self, k: int, now: float) -> None:
+        """Record the frame lock's state (``frame_lock`` on ``/orchestrator/status``) when it
+        changes, and every :data:`FRAME_LOCK_REPORT_S` while it holds."""
+        lock, ticks = self._frame_lock, self._ticks
+        if lock is None:
+            return
+        locked = ticks.locked
+        if locked is self._lock_reported and now < self._lock_report_due:
+            return
+        with self._frame_guard:
+            frames, mean, top = lock.take_stats()
+            offset = lock.offset_s
+        if locked:
+            detail = (
+                f"locked: ticks {ticks.lag_s * 1e3:.3g} ms after frames "
+                f"({offset * 1e3:.3g} ms after their frame time); frames after the estimated "
+                f"grid: mean {mean * 1e3:.3g} / max {top * 1e3:.3g} ms ({frames} frames)"
+            )
+        elif not ticks.enabled:
+            detail = "free: ticks faster than the mocap frames"
+        else:
+            detail = "free: no mocap frames"
+        detail += f"; ticks locked {ticks.ticks_locked}, free {ticks.ticks_free}"
+        if locked != self._lock_reported:
+            logger.info("tick %d: %s", k, detail)
+        self._lock_reported = locked
+        self._lock_report_due = now + FRAME_LOCK_REPORT_S
+        self._record_event(ORCHESTRATOR, "frame_lock", k=k, detail=detail)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         """An agent's status message (rare): its state for the display and the policies."""
@@ -555,15 +635,19 @@ class InstanceManager:
         start = clock()
         t0 = start + (min(0.05, 5 * dt) if realtime else 0.0)
         clocked = self.self_clocked
-        if clocked:  # the agents wake themselves at t0 + k * dt from now on
-            self._send_schedule(0, self.experiment.n_ticks - 1, t0)
         if realtime:
+            self._ticks.start(t0)  # tick k due at t0 + k dt, or in step with the mocap frames
+            t0 = self._due(0)
+            if clocked:  # the agents wake themselves at t0 + k * dt from now on
+                self._send_schedule(0, self.experiment.n_ticks - 1, t0)
             self._wait_until(t0)
         if not self._stop_reason:
             if clocked:
-                self._clocked_step(t0)
+                self._clocked_step()
             elif realtime:
                 self._release(0, t0)
+                self._ticks.released()
+                self._note_frame_lock(0, clock())
             else:
                 self._release_window()
         next_display = start + 0.5
@@ -571,10 +655,11 @@ class InstanceManager:
             now = clock()
             if self._reanchor:  # realtime resume: tick k+1 is due one period from now
                 self._reanchor = False
-                t0 = self._reanchor_clocked(now) if clocked else now - tick.k * dt
-            due = t0 + (tick.k + 1) * dt if realtime else math.inf
-            if clocked:
-                due = t0 + self._step_k * dt
+                t0 = self._reanchor_clocked(now) if clocked else self._reanchor_free(now)
+            if clocked:  # the schedule in force
+                due = self._schedule[2] + self._step_k * dt
+            else:
+                due = self._due(tick.k + 1) if realtime else math.inf
             # self-clocked: a pause takes effect once the tick after it is closed
             halting = clocked and self._halt_after is not None and tick.base <= self._halt_after
             stepping = not self._paused or halting
@@ -604,11 +689,14 @@ class InstanceManager:
                 if clocked:
                     halting = self._halt_after is not None and tick.base <= self._halt_after
                     if (not self._paused or halting) and clock() >= due:
-                        self._clocked_step(t0)
+                        self._clocked_step()
                 elif not self._paused and clock() >= due:
-                    self._realtime_step(t0)
+                    self._realtime_step(due)
             else:
                 self._lockstep_step()
+        if realtime:  # the lock's totals at the end
+            self._lock_report_due = -math.inf
+            self._note_frame_lock(tick.k, clock())
         summary = self.summary
         summary.wall_s = clock() - start
         summary.stop_reason = self._stop_reason
@@ -619,8 +707,9 @@ class InstanceManager:
         self._stop_agents(max(tick.base - 1, 0))
         return summary
 
-    def _realtime_step(self, t0: float) -> None:
-        """Close the tick in flight (late agents counted) and send the next one, due now."""
+    def _realtime_step(self, scheduled: float) -> None:
+        """Close the tick in flight (late agents counted) and send the next one, due now
+        (``scheduled`` [s, manager clock])."""
         tick, n_ticks = self._tick, self.experiment.n_ticks
         with self._lock:
             complete = tick.base_complete()
@@ -629,30 +718,57 @@ class InstanceManager:
             k = tick.released + 1
             if k < n_ticks:
                 missing = sorted(set(late) | self.lost)
-                tick.release(k, t0 + k * self.dt, self._clock())
+                tick.release(k, scheduled, self._clock())
         if k < n_ticks:
             self._send_tick(k, missing)
+            self._ticks.released()
+            self._note_frame_lock(k, self._clock())
         self._count(account, late)
         if k >= n_ticks:
             self._stop_reason = "completed"
 
-    def _clocked_step(self, t0: float) -> None:
+    def _reanchor_free(self, now: float) -> float:
+        """Ticked resume: tick k+1 is due one period from ``now`` (or at the frame then)."""
+        with self._frame_guard:
+            self._ticks.reanchor(now, self._tick.k)
+        return now - self._tick.k * self.dt
+
+    def _clocked_step(self) -> None:
         """Self-clocked: tick ``j = _step_k`` is due now (the agents start it themselves).
 
         Closes the ticks before ``j`` (late agents counted) and opens ``j`` and ``j + 1``
         (an agent's answer may come before this thread gets here: its tick is open already).
+        When the frame lock moves the due time of ``j + 1`` off the schedule in force, a new
+        schedule goes out (it reaches the agents about a period before that tick).
         """
         tick, n_ticks, dt = self._tick, self.experiment.n_ticks, self.dt
         j = self._step_k
-        last = min(n_ticks - 1, self._schedule[1])
+        _, last, anchor = self._schedule
+        last = min(n_ticks - 1, last)
+        due_j = anchor + j * dt
+        if self._frame_lock is not None:
+            self._ticks.released()
+            self._note_frame_lock(j, self._clock())
+            if j + 1 <= last:
+                moved = self._due(j + 1) - (j + 1) * dt  # the anchor the lock asks for
+                if abs(moved - anchor) > SCHEDULE_MOVE_S:
+                    anchor = moved
+                    self._send_schedule(j + 1, self._schedule[1], anchor)
         closed: list[tuple[TickAccount, list[int]]] = []
         with self._lock:
             while tick.base < j and tick.base <= tick.released:
                 complete = tick.base_complete()
                 late = [] if complete else tick.unanswered()
                 closed.append((self._close_base(late, complete), late))
-            for k in range(tick.released + 1, min(last, j + 1) + 1):
-                tick.release(k, t0 + k * dt, t0 + k * dt)  # no message: sent = scheduled
+            if j <= last and tick.released < j:
+                tick.release(j, due_j, due_j)  # no message: sent = scheduled
+            if j + 1 <= last:
+                due = anchor + (j + 1) * dt
+                if tick.released < j + 1:
+                    tick.release(j + 1, due, due)
+                else:  # opened in advance already: re-timed
+                    slot = (j + 1) % tick.window
+                    tick.scheduled[slot] = tick.sent[slot] = due
         self._step_k = j + 1
         for account, late in closed:
             self._count(account, late)
@@ -661,12 +777,14 @@ class InstanceManager:
 
     def _reanchor_clocked(self, now: float) -> float:
         """Self-clocked resume: the tick after the last one started is due one period from
-        ``now``; returns the new T0 [s] after sending the new schedule."""
+        ``now`` (or at the frame then); returns the new T0 [s] after sending the schedule."""
         tick = self._tick
         with self._lock:
             started = min(self._step_k - 1, tick.released)
             tick.released = started  # a tick opened in advance is opened again, re-timed
-        t0 = now - started * self.dt
+        with self._frame_guard:
+            self._ticks.reanchor(now, started)
+        t0 = self._due(started + 1) - (started + 1) * self.dt
         self._halt_after = None
         self._step_k = started + 1
         self._send_schedule(started + 1, self.experiment.n_ticks - 1, t0)

@@ -31,14 +31,18 @@ INTERRUPTED = 130
 
 #: Agent status counters listed in the summary when non-zero (reported by the agents, see
 #: docs/running.md): a count, or counts by key or reason.
-COUNTER_NAMES = ("malformed", "dropped", "skipped", "link_faults")
+COUNTER_NAMES = ("malformed", "dropped", "skipped", "link_faults", "stale_samples")
 #: How each counter reads in the summary.
 _COUNTER_WORDS = {
     "malformed": "malformed messages",
     "dropped": "dropped messages",
     "skipped": "ticks skipped",
     "link_faults": "link faults",
+    "stale_samples": "stale samples (answers of the XBee gateway in broadcast mode)",
 }
+#: Counters of a mode's normal operation: listed as a note, never a degradation. STALE board
+#: answers come only from the XBee gateway's broadcast mode, by design (docs/xbee.md).
+BENIGN_COUNTERS = frozenset({"stale_samples"})
 #: Reasons of dropped input that are normal under load (not a degradation by themselves).
 BENIGN_DROPS = frozenset({"stale"})
 
@@ -92,7 +96,7 @@ def _counter_texts(counters: dict[str, int | dict[str, int]]) -> tuple[list[str]
         else:
             total = int(value or 0)
             text = f"{total} {_COUNTER_WORDS[key]}"
-            serious = serious or total > 0
+            serious = serious or (total > 0 and key not in BENIGN_COUNTERS)
         if total:
             parts.append(text)
     return parts, serious

@@ -62,6 +62,13 @@ LEDGER_PARTS: tuple[tuple[str, str], ...] = (
     ("sense_s", "sense y"),
     ("bus_s", "bus and waits"),
 )
+#: The link round trip through the XBee gateway, split (present in the ledger of an agent on
+#: ``xbee://``): replaces ``link_s`` in the latency figure when a recording has it.
+GATEWAY_PARTS: tuple[tuple[str, str], ...] = (
+    ("gateway_bus_s", "link: bus hops"),
+    ("gateway_s", "link: gateway"),
+    ("radio_s", "link: radio"),
+)
 #: Lifecycle states marked on every time axis, and their line colours.
 EVENT_COLOURS: dict[str, str] = {"safe": "tab:orange", "lost": "tab:red", "estop": "black"}
 #: More agents than this and the legends are left out (they would cover the data).
@@ -463,16 +470,43 @@ def _ticks_figure(data: RecordingData, title: str) -> Figure | None:
     return figure
 
 
+def ledger_parts(ticks: list[dict[str, Any]]) -> tuple[tuple[str, str], ...]:
+    """The parts of the ledger in ``/orchestrator/ticks``: :data:`LEDGER_PARTS`, with the
+    :data:`GATEWAY_PARTS` after ``link_s`` when any agent's ledger has them."""
+    for message in ticks:
+        agents = message.get("agents")
+        if isinstance(agents, dict) and any(
+            isinstance(entry, dict) and "gateway_s" in entry for entry in agents.values()
+        ):
+            at = [key for key, _ in LEDGER_PARTS].index("link_s") + 1
+            return (*LEDGER_PARTS[:at], *GATEWAY_PARTS, *LEDGER_PARTS[at:])
+    return LEDGER_PARTS
+
+
 def tick_ledger(ticks: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Per agent ``(t [s], parts [s])`` from ``/orchestrator/ticks``: one row per tick the
-    agent answered, one column per :data:`LEDGER_PARTS` entry (NaN where not recorded).
+    agent answered, one column per :func:`ledger_parts` entry (NaN where not recorded).
+
+    With the gateway parts, an agent's ``link_s`` column holds what its gateway parts do not
+    explain: 0 when they are recorded (they sum to ``link_s``), all of ``link_s`` (and 0 in
+    the gateway parts) for an agent without a gateway or a tick whose link had no answer from
+    it.
     """
+    keys = [key for key, _ in ledger_parts(ticks)]
+    split = len(keys) > len(LEDGER_PARTS)
+    link = keys.index("link_s")
     rows: dict[str, list[tuple[float, list[float]]]] = {}
     for message in ticks:
         t = _float(message.get("t"))
         for agent, entry in (message.get("agents") or {}).items():
             if isinstance(entry, dict):
-                parts = [_float(entry.get(key)) for key, _ in LEDGER_PARTS]
+                parts = [_float(entry.get(key)) for key in keys]
+                if split:
+                    stages = parts[link + 1 : link + 1 + len(GATEWAY_PARTS)]
+                    if all(np.isfinite(stages)):
+                        parts[link] -= sum(stages)
+                    else:
+                        parts[link + 1 : link + 1 + len(GATEWAY_PARTS)] = [0.0] * len(stages)
                 rows.setdefault(agent, []).append((t, parts))
     return {
         agent: (np.array([r[0] for r in items]), np.array([r[1] for r in items], dtype=float))
@@ -492,7 +526,7 @@ def _latency_figure(data: RecordingData, title: str) -> Figure | None:
     slowest = sorted(ledger, key=lambda a: -float(medians[a].sum()))[:MAX_LATENCY_PANELS]
     n = len(slowest)
     figure, axes = plt.subplots(n + 1, 1, figsize=(9, 2.4 * (n + 1) + 1), squeeze=False)
-    labels = [label for _, label in LEDGER_PARTS]
+    labels = [label for _, label in ledger_parts(data.ticks)]
     deadline = data.period_s
     for axis, agent in zip(axes[:n, 0], slowest, strict=True):
         t, parts = ledger[agent]
@@ -504,7 +538,7 @@ def _latency_figure(data: RecordingData, title: str) -> Figure | None:
         axis.set_xlabel("experiment time t [s]")
         axis.grid(True, alpha=0.3)
         _mark_events(axis, data.events)
-    axes[0, 0].legend(loc="upper right", fontsize="small", ncols=len(labels))
+    axes[0, 0].legend(loc="upper right", fontsize="small", ncols=min(len(labels), 5))
     bars = axes[n, 0]
     names = list(ledger)
     left = np.zeros(len(names))

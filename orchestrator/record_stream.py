@@ -61,14 +61,19 @@ _GATEWAY_HEAD = struct.Struct("<BIqH")
 #: Layouts of the bus payloads a Y frame carries, unpacked in place by the recorder: the head
 #: of :func:`~hilswarm.agents.bus.encode_vector` (k, t) and of
 #: :func:`~hilswarm.agents.bus.encode_report` (compute_s, actuate_s, sense_s, link_s, skipped,
-#: retries, n_u, n_x).
+#: retries, n_u, n_x; after u and x_hat, for a link through the XBee gateway, the 2 float64
+#: gateway_s, radio_s).
 _VECTOR = struct.Struct("<qd")
 _REPORT = struct.Struct("<ddddHHHH")
+_STAGES_SIZE = 16
 #: The timing of a y frame without a report.
 _NO_TIMING = (0.0, 0.0, 0.0, 0.0, 0, 0)
 _FLOATS: dict[int, struct.Struct] = {}
 #: Y frame layouts a FrameRecorder remembers (one per frame length).
 _Y_LAYOUTS = 256
+#: Tick reports an agent may have ahead of (or left behind) the ticks accounted, before the
+#: older ones are dropped.
+_TIMINGS_KEPT = 64
 
 
 def _floats(n: int) -> struct.Struct:
@@ -204,27 +209,33 @@ class FrameRecorder:
         self.names = experiment.agent_names
         self.dt = experiment.dt
         self._quoted = [json.dumps(name) for name in self.names]
-        # Per agent, its part of /orchestrator/ticks "agents" with "%" holes for the numbers.
+        # Per agent, its part of /orchestrator/ticks "agents" with "%" holes for the numbers;
+        # with the gateway stages for a tick whose report has them (an xbee:// link).
         self._agent_templates = [
             quoted.replace("%", "%%")
             + ':{"answer_s":%s,"bus_s":%s,"compute_s":%s,"actuate_s":%s,"link_s":%s,'
             '"sense_s":%s,"skipped":%d,"retries":%d}'
             for quoted in self._quoted
         ]
+        self._gateway_templates = [
+            template[:-1] + ',"gateway_bus_s":%s,"gateway_s":%s,"radio_s":%s}'
+            for template in self._agent_templates
+        ]
         self._y_topics = [f"/{name}/y" for name in self.names]
         self._u_topics = [f"/{name}/u" for name in self.names]
         self._x_topics = [f"/{name}/x_hat" for name in self.names]
-        # Per agent, (k, (compute_s, actuate_s, sense_s, link_s, skipped, retries)) of its
-        # latest y: tick k's ledger.
-        self._timings: list[tuple[int, tuple[Any, ...]] | None] = [None] * len(self.names)
+        # Per agent, k -> (compute_s, actuate_s, sense_s, link_s, skipped, retries[, gateway_s,
+        # radio_s]) of its y_k not yet in a tick's ledger (in lockstep an agent's y_{k+1} can
+        # come before tick k is complete).
+        self._timings: list[dict[int, tuple[Any, ...]]] = [{} for _ in self.names]
         self._ticks_registered = False
         self._wall = recorder.experiment_clock  # /orchestrator/ticks carries wall_ns
         self._plain_y: set[int] = set()
         # Topics whose field names did not match the values (recorded plain from then on).
         self._plain_topics: set[str] = set()
         # Per frame length, the layout of the last Y frame of that length: (struct, n_y, n_u,
-        # n_x), n_u = n_x = -1 for a frame without a report.
-        self._y_layouts: dict[int, tuple[struct.Struct, int, int, int]] = {}
+        # n_x, n_g), n_u = n_x = -1 for a frame without a report, n_g = 2 with gateway stages.
+        self._y_layouts: dict[int, tuple[struct.Struct, int, int, int, int]] = {}
         # Per agent, the number of field names of its y topic (None: no names), once known.
         self._y_width: dict[int, int | None] = {}
         # The same for the u and x_hat topics, by topic.
@@ -318,7 +329,7 @@ class FrameRecorder:
 
     def _y(self, frame: bytes, rows: list[tuple[str, int, float, Sequence[float], int]]) -> None:
         i, log_ns, k, t, values, timing, u, x_hat = self._unpack_y(frame)
-        self._timings[i] = (k, timing)
+        self._timings[i][k] = timing
         if i not in self._plain_y and self._y_fields_match(i, len(values)):
             rows.append((self._y_topics[i], k, t, values, log_ns))
         else:
@@ -355,8 +366,8 @@ class FrameRecorder:
 
     def _unpack_y(self, frame: bytes) -> tuple[Any, ...]:
         """The numbers of a Y frame: agent, log time [ns], k, t [s], y, the timing
-        ``(compute_s, actuate_s, sense_s, link_s, skipped, retries)``, u, x_hat (the vectors as
-        tuples of floats).
+        ``(compute_s, actuate_s, sense_s, link_s, skipped, retries)`` (followed by ``gateway_s,
+        radio_s`` when the report has them), u, x_hat (the vectors as tuples of floats).
 
         Frames of one length almost always have one layout (an agent's y, u and x_hat keep
         their sizes): all numbers are unpacked at once with the layout last seen for the
@@ -364,7 +375,7 @@ class FrameRecorder:
         """
         cached = self._y_layouts.get(len(frame))
         if cached is not None:
-            layout, n_y, n_u, n_x = cached
+            layout, n_y, n_u, n_x, n_g = cached
             numbers = layout.unpack_from(frame)
             end_y = 7 + n_y
             if numbers[4] == _VECTOR.size + 8 * n_y:
@@ -372,6 +383,13 @@ class FrameRecorder:
                     return (*numbers[2:4], *numbers[5:7], numbers[7:], _NO_TIMING, (), ())
                 if numbers[end_y + 6] == n_u and numbers[end_y + 7] == n_x:
                     u_end = end_y + 8 + n_u
+                    if n_g:
+                        x_end = u_end + n_x
+                        return (
+                            numbers[2], numbers[3], numbers[5], numbers[6], numbers[7:end_y],
+                            numbers[end_y : end_y + 6] + numbers[x_end:],
+                            numbers[end_y + 8 : u_end], numbers[u_end:x_end],
+                        )  # fmt: skip
                     return (
                         numbers[2], numbers[3], numbers[5], numbers[6], numbers[7:end_y],
                         numbers[end_y : end_y + 6], numbers[end_y + 8 : u_end], numbers[u_end:],
@@ -390,19 +408,23 @@ class FrameRecorder:
             if size < _REPORT.size:
                 raise RecordingError(f"tick report of {size} bytes, expected >= {_REPORT.size}")
             *timing, n_u, n_x = _REPORT.unpack_from(frame, report)
-            if size != _REPORT.size + 8 * (n_u + n_x):
+            n_g = 2 if size == _REPORT.size + 8 * (n_u + n_x) + _STAGES_SIZE else 0
+            if size != _REPORT.size + 8 * (n_u + n_x + n_g):
                 raise RecordingError(f"tick report of {size} bytes does not hold {n_u} + {n_x}")
             report += _REPORT.size
             u = _floats(n_u).unpack_from(frame, report)
             x_hat = _floats(n_x).unpack_from(frame, report + 8 * n_u)
-            layout = f"<BIHqIqd{n_y}dddddHHHH{n_u}d{n_x}d"
+            if n_g:  # gateway_s, radio_s
+                timing += _floats(2).unpack_from(frame, report + 8 * (n_u + n_x))
+            layout = f"<BIHqIqd{n_y}dddddHHHH{n_u}d{n_x}d{n_g}d"
         else:
             timing = _NO_TIMING
             u = x_hat = ()
             n_u = n_x = -1
+            n_g = 0
             layout = f"<BIHqIqd{n_y}d"
         if len(self._y_layouts) < _Y_LAYOUTS:
-            self._y_layouts[len(frame)] = (struct.Struct(layout), n_y, n_u, n_x)
+            self._y_layouts[len(frame)] = (struct.Struct(layout), n_y, n_u, n_x, n_g)
         return i, log_ns, k, t, values, tuple(timing), u, x_hat
 
     def _plain_vector(
@@ -426,31 +448,40 @@ class FrameRecorder:
         # Every number of the message, formatted at once; non-finite ones become null.
         numbers: list[float] = [k * self.dt, scheduled, send_delay, completion]
         templates = self._agent_templates
-        answered: list[str] = []
-        counts: list[tuple[int, int]] = []
+        answered: list[tuple[str, int, int, int, int]] = []  # template, numbers, counts
         timings = self._timings
         for i, answer in enumerate(answers):
+            kept = timings[i]
+            timing = kept.pop(k, None)
+            if len(kept) > _TIMINGS_KEPT:  # of ticks never accounted (no answer in time)
+                for old in [j for j in kept if j < k]:
+                    del kept[old]
             if math.isnan(answer):  # no answer
                 continue
-            entry = timings[i]
-            if entry is not None and entry[0] == k:
-                compute, actuate, sense, link, skipped, retries = entry[1]
+            start = len(numbers)
+            if timing is not None:
+                compute, actuate, sense, link, skipped, retries = timing[:6]
                 # the rest of the answer time: bus delivery both ways (and, in lockstep, the
                 # wait for the neighbours' outputs)
                 bus_s = answer - (compute + actuate + sense + link)
                 numbers += (answer, bus_s, compute, actuate, link, sense)
-                counts.append((int(skipped), int(retries)))
+                if len(timing) > 6:  # through the XBee gateway: the link's bus hops, the rest
+                    gateway, radio = timing[6:8]
+                    numbers += (link - gateway - radio, gateway, radio)
+                    answered.append((self._gateway_templates[i], start, 9, skipped, retries))
+                    continue
+                answered.append((templates[i], start, 6, skipped, retries))
             else:
                 numbers += (answer, math.nan, math.nan, math.nan, math.nan, math.nan)
-                counts.append((0, 0))
-            answered.append(templates[i])
+                answered.append((templates[i], start, 6, 0, 0))
         texts = list(map(float.__repr__, numbers))
         if "n" in "".join(texts):
             texts = ["null" if "n" in text else text for text in texts]
         agents = ",".join(
             [
-                template % (*texts[4 + 6 * j : 10 + 6 * j], *counts[j])
-                for j, template in enumerate(answered)
+                template
+                % (*texts[start : start + 6], skipped, retries, *texts[start + 6 : start + n])
+                for template, start, n, skipped, retries in answered
             ]
         )
         wall = f'"wall_ns":{log_ns},' if self._wall else ""

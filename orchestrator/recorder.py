@@ -79,6 +79,10 @@ STATUS_SCHEMA = _object_schema(
         },
         "skipped": {"type": "integer", "description": "ticks the agent missed in total"},
         "link_faults": {"type": "integer", "description": "board link faults of the agent"},
+        "stale_samples": {
+            "type": "integer",
+            "description": "board answers marked STALE (XBee gateway, broadcast mode)",
+        },
     },
 )
 TICKS_SCHEMA = _object_schema(
@@ -349,7 +353,7 @@ class Recorder:
             log_time_ns: log time [ns, wall clock, Unix epoch].
             detail: free text, e.g. the reason of a safe-mode entry.
             counters: the agent's input and fault counters (``malformed``, ``dropped``,
-                ``skipped``, ``link_faults``), as it sent them.
+                ``skipped``, ``link_faults``, ``stale_samples``), as it sent them.
         """
         message = {
             "k": int(k),

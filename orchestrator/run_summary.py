@@ -63,7 +63,8 @@ class RunSummary:
         safe: per agent, its first entry into safe mode (tick and reason).
         degraded: per agent, its entries into the ``degraded`` state (link fault).
         counters: per agent, the latest counters its status reports (``malformed`` and
-            ``dropped`` messages by key or reason, ``skipped`` ticks, ``link_faults``).
+            ``dropped`` messages by key or reason, ``skipped`` ticks, ``link_faults``,
+            ``stale_samples``).
         late: late answers per agent (realtime).
         late_ticks: ticks not complete by the next tick's deadline (realtime).
         max_late_fraction: late ticks above this fraction of the planned ticks degrade the

@@ -246,6 +246,11 @@ class MocapSection(_Table):
     """Kalman measurement noise of the yaw [rad]."""
     start_timeout_s: float = Field(DEFAULT_START_TIMEOUT_S, ge=0.0, le=600.0)
     """How long an agent waits for its body to be seen at start [s]."""
+    tick_lock: bool = True
+    """Release the realtime ticks in step with the frames (a lag after a frame comes)."""
+    tick_lag_ms: float | None = Field(None, ge=0.0, le=1000.0)
+    """A locked tick is released this long after its frame reaches the host [ms], under one
+    frame period (default: 2 ms, at most a quarter of a frame period)."""
     sim: MocapSimSection | None = None
     """system = "sim" only: the simulated cameras."""
 

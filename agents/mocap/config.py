@@ -10,6 +10,8 @@
     # port = 22223          # optional: the server's port (system default otherwise)
     # up_axis = "z"         # optional: override the system's default up axis ("y" or "z")
     # position_std_m = 0.002, yaw_std_rad = 0.02   # Kalman measurement noise
+    # tick_lock = true      # realtime ticks in step with the frames (docs/mocap.md)
+    # tick_lag_ms = 2.0     # a tick this long after its frame reaches the host [ms]
 
     [mocap.sim]             # system = "sim" only: what the simulated cameras do
     noise_std_m = 0.002
@@ -36,6 +38,12 @@ from typing import Any
 DEFAULT_RATE_HZ = 100.0
 DEFAULT_HOLD_FRAMES = 10
 DEFAULT_START_TIMEOUT_S = 5.0
+#: Default lag of a tick after the frame it is locked to [ms] (capped at a quarter of a frame
+#: period: 1.04 ms at 240 Hz). Measured (docs/mocap.md): shorter lags miss frames whose poses
+#: are still on their way; each ms more is a ms more latency.
+DEFAULT_TICK_LAG_MS = 2.0
+#: The default lag is at most this fraction of a frame period.
+DEFAULT_TICK_LAG_PERIODS = 0.25
 
 
 @dataclass(frozen=True)
@@ -64,12 +72,23 @@ class MocapSettings:
     position_std_m: float = 0.002
     yaw_std_rad: float = 0.02
     start_timeout_s: float = DEFAULT_START_TIMEOUT_S
+    tick_lock: bool = True
+    tick_lag_ms: float | None = None
     sim: SimCameras = field(default_factory=SimCameras)
 
     @property
     def hold_s(self) -> float:
         """How long a body may go unseen before its agent goes safe [s]."""
         return self.hold_frames / self.rate_hz
+
+    @property
+    def tick_lag_s(self) -> float:
+        """A locked tick is released this long after its frame reaches the host [s]
+        (``tick_lag_ms``; default :data:`DEFAULT_TICK_LAG_MS`, at most a quarter of a frame
+        period)."""
+        if self.tick_lag_ms is not None:
+            return self.tick_lag_ms * 1e-3
+        return min(DEFAULT_TICK_LAG_MS * 1e-3, DEFAULT_TICK_LAG_PERIODS / self.rate_hz)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able data (for command lines); inverse of :meth:`from_dict`."""

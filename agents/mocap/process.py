@@ -12,7 +12,10 @@ mocap_runner`). It
 3. per frame and body: maps the system's convention into the world frame (:mod:`.frames`),
    runs the body's filter (:mod:`.filter`), counts occluded frames, and publishes
    (:mod:`.message`); bodies the experiment does not use are not published;
-4. publishes its status (JSON on ``mocap_status``): ``streaming`` with the bodies the system
+4. after the poses of a frame, puts the frame clock (``mocap_clock``: frame number, frame time
+   on this host's CLOCK_MONOTONIC, :mod:`.frame_clock`), which the instance manager locks the
+   realtime ticks to;
+5. publishes its status (JSON on ``mocap_status``): ``streaming`` with the bodies the system
    lists and those visible, every second and on change; ``lost`` when the server goes away
    (then it exits with status 1 — agents stop using poses at once); ``stopped`` on SIGTERM.
 
@@ -37,7 +40,7 @@ import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import add_credentials_arguments, bus_access_from_args
 from hilswarm.agents.errors import HilswarmError
-from hilswarm.agents.mocap import message
+from hilswarm.agents.mocap import frame_clock, message
 from hilswarm.agents.mocap.clients import (
     Frame,
     MocapClient,
@@ -114,6 +117,7 @@ class MocapProcess:
         self._shared_clock = settings.system == "sim"
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._status_pub: zenoh.Publisher | None = None
+        self._clock_pub: zenoh.Publisher | None = None
         self._status_due = 0.0
         self._last_state: tuple[Any, ...] = ()
         self._lock = threading.Lock()
@@ -176,6 +180,9 @@ class MocapProcess:
                         number, time_s, received, latency, occluded=occluded[i], values=rows[i]
                     )
                 )
+        clock_pub = self._clock_pub
+        if clock_pub is not None:  # the frame's time on this host's clock: see frame_clock
+            clock_pub.put(frame_clock.encode(number, received - latency))
         self.frames += 1
         self.skipped += frame.skipped
         if self._clock() >= self._status_due:
@@ -193,6 +200,7 @@ class MocapProcess:
                     self.keys.mocap(name), **POSE_QOS
                 )
             self._status_pub = session.declare_publisher(self.keys.mocap_status, **bus.DATA_QOS)
+            self._clock_pub = session.declare_publisher(self.keys.mocap_clock, **POSE_QOS)
             entities.append(session.liveliness().declare_token(self.keys.alive(MOCAP_NAME)))
             self.publish_status("connecting", f"{self.settings.system} at {self.settings.host}")
             try:
@@ -209,7 +217,7 @@ class MocapProcess:
             return 0
         finally:
             self._publishers.clear()
-            self._status_pub = None
+            self._status_pub = self._clock_pub = None
             entities.clear()
             session.close()
 

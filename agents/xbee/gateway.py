@@ -25,6 +25,11 @@ on ``gateway/stats`` (recorded as ``/gateway/stats``): ``k``, ``t``, ``values`` 
 :data:`STATS_FIELDS` (estimated air time, air and host UART load both ways, TX failures,
 retries), per robot the last RSSI [dBm] and the running totals; ``gateway/status`` carries
 ``connected`` / ``disconnected``.
+
+Every sample put on an agent's ``link/rx`` carries the gateway's stage times of that answer as
+its attachment (:mod:`.stages`: the gateway's own time and the radio's), for the agent's tick
+ledger. Per robot the gateway keeps when its last request came in and when it went to the UART;
+a few clock readings per frame, nothing else on the hot path.
 """
 
 from __future__ import annotations
@@ -62,6 +67,7 @@ from hilswarm.agents.xbee.api_frames import (
 )
 from hilswarm.agents.xbee.config import GatewayConfig, format_address
 from hilswarm.agents.xbee.packer import Action, Broadcast, BroadcastPacker, ToAgent, Unicast
+from hilswarm.agents.xbee.stages import encode_stages
 
 _log = logging.getLogger(__name__)
 
@@ -159,7 +165,13 @@ class Gateway:
         self._decoder = ApiFrameDecoder(self._mode)
         self._port: serial.SerialBase | None = None
         self._port_lock = threading.Lock()
-        self._outbox: queue.SimpleQueue[tuple[str, bytes] | tuple[()] | None] = queue.SimpleQueue()
+        self._outbox: queue.SimpleQueue[tuple[str, bytes, float] | tuple[()] | None] = (
+            queue.SimpleQueue()
+        )
+        # Stage times (module docstring), per robot: when its agent's last request reached the
+        # gateway, and (when it went to the UART, the gateway's time until then) [s, clock].
+        self._arrived: dict[str, float] = {}
+        self._sent: dict[str, tuple[float, float]] = {}
         self._frame_id = 0
         self._pending: dict[int, str] = {}  # frame id -> robot name
         self._at_answers: queue.SimpleQueue[AtResponse] = queue.SimpleQueue()
@@ -342,8 +354,9 @@ class Gateway:
 
     # ------------------------------------------------------------------ bus -> radio
     def _on_tx(self, name: str, sample: zenoh.Sample) -> None:
-        """Bus callback: hand the bytes to the writer thread (never blocks)."""
-        self._outbox.put((name, sample.payload.to_bytes()))
+        """Bus callback: hand the bytes, with their arrival time, to the writer thread (never
+        blocks)."""
+        self._outbox.put((name, sample.payload.to_bytes(), self.clock()))
 
     def _next_frame_id(self) -> int:
         self._frame_id = self._frame_id % 255 + 1  # 1..255 (0 would ask for no status)
@@ -363,6 +376,8 @@ class Gateway:
                 item = ()  # a round's gathering time is over
             if item is None:
                 return
+            if item:
+                self._arrived[item[0]] = item[2]
             if packer is not None:
                 with self._packer_lock:
                     actions = (
@@ -374,17 +389,18 @@ class Gateway:
                 continue
             if not self.connected.is_set():
                 continue  # coordinator away: the frame is lost, the agent's board retries
-            self._send_unicast(*item)
+            self._send_unicast(item[0], item[1])
 
-    def _act(self, actions: list[Action]) -> None:
-        """Carry out the packer's actions (writer or reader thread)."""
+    def _act(self, actions: list[Action], received_s: float | None = None) -> None:
+        """Carry out the packer's actions (writer thread; reader thread with ``received_s``,
+        when the robot's frame that caused them was decoded [s, clock])."""
         for action in actions:
             if isinstance(action, ToAgent) and action.stale and not self.connected.is_set():
                 continue  # coordinator away: no answers from old samples; the boards time out
             if isinstance(action, ToAgent):
                 robot = self.stats.robots[action.name]
                 robot.stale_replies += action.stale
-                self._rx_pubs[action.name].put(action.data)
+                self._publish_rx(action.name, action.data, None if action.stale else received_s)
             elif not self.connected.is_set():
                 continue  # coordinator away: lost; the agents' boards retry
             elif isinstance(action, Unicast):
@@ -398,9 +414,32 @@ class Gateway:
             return Tx64Request(frame_id, address, data)
         return TransmitRequest(frame_id, address, data)
 
+    def _note_sent(self, name: str, now: float) -> None:
+        """Robot ``name``'s request goes to the UART now: the gateway's time until then."""
+        self._sent[name] = (now, now - self._arrived.get(name, now))
+
+    def _publish_rx(self, name: str, data: bytes, received_s: float | None) -> None:
+        """Put ``data`` on agent ``name``'s ``link/rx`` with the answer's stage times
+        (:mod:`.stages`): the robot's answer decoded at ``received_s``, or (``None``) an answer
+        the gateway gives itself."""
+        now = self.clock()
+        attachment = None
+        if received_s is None:
+            arrived = self._arrived.get(name)
+            if arrived is not None:
+                attachment = encode_stages(now - arrived, 0.0)
+        else:
+            sent = self._sent.get(name)
+            if sent is not None:
+                attachment = encode_stages(sent[1] + now - received_s, received_s - sent[0])
+        self._rx_pubs[name].put(data, attachment=attachment)
+
     def _send_broadcast(self, action: Broadcast) -> None:
         """One BCAST frame to every robot: no ACK, no MAC retry, no TX Status (frame id 0)."""
         frame = self._tx_frame(0, BROADCAST_64, action.data)
+        now = self.clock()
+        for name in action.names:
+            self._note_sent(name, now)
         try:
             self._write_frame(frame)
         except (serial.SerialException, OSError) as exc:
@@ -416,6 +455,7 @@ class Gateway:
         """``data`` to robot ``name`` as TX Requests of at most the RF payload each."""
         address = self.robots[name]
         robot = self.stats.robots[name]
+        self._note_sent(name, self.clock())
         for start in range(0, len(data), self._max_payload):
             chunk = data[start : start + self._max_payload]
             frame_id = self._next_frame_id()
@@ -445,6 +485,7 @@ class Gateway:
 
     def _dispatch(self, frame: ApiFrame) -> None:
         if isinstance(frame, Rx64Packet | ReceivePacket):
+            received_s = self.clock()
             name = self.by_address.get(frame.source)
             if name is None:
                 self.stats.dropped_frames += 1
@@ -461,9 +502,9 @@ class Gateway:
             if self.packer is not None:
                 with self._packer_lock:
                     actions = self.packer.from_robot(name, frame.data)
-                self._act(actions)
+                self._act(actions, received_s)
                 return
-            self._rx_pubs[name].put(frame.data)
+            self._publish_rx(name, frame.data, received_s)
         elif isinstance(frame, TxStatus | TransmitStatus):
             name = self._pending.pop(frame.frame_id, None)
             if name is None:

@@ -8,6 +8,9 @@ reads come from ``agent/<name>/link/rx``. Seq numbers, CRC, retries, reconnectio
 :class:`~hilswarm.agents.link.serial_board.LinkEvent` work as on a USB link; the timeouts are
 those of a radio hop (:data:`DEFAULT_TIMEOUT_S`).
 
+Every answer the gateway puts on ``link/rx`` carries its stage times (:mod:`.stages`); the board
+keeps those of the last answer (:meth:`XBeeBoard.take_link_stages`) for the agent's tick ledger.
+
 With ``?sim=sim://<profile>`` or ``?sim=simavr://<profile>`` (for ``[gateway] port = "sim"``)
 the agent's process also runs the simulated robot behind that address
 (:class:`~.robot_host.RobotHost`), with the vehicle's simulated hardware as plant.
@@ -16,16 +19,18 @@ the agent's process also runs the simulated robot behind that address
 from __future__ import annotations
 
 import contextlib
+import math
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.errors import BoardConnectionError, LinkUrlError
-from hilswarm.agents.link.board import BoardInfo
+from hilswarm.agents.link.board import BoardInfo, TickReply
 from hilswarm.agents.link.serial_board import SerialBoard, SerialPort
 from hilswarm.agents.xbee.config import parse_xbee_url
+from hilswarm.agents.xbee.stages import decode_stages
 
 #: Reply wait of one exchange over the radio before a re-send [s] (a round trip through the
 #: gateway takes ~10 ms; several robots share the air).
@@ -46,11 +51,20 @@ class ChannelReader:
         session: the bus session.
         key: the key to receive.
         on_bytes: called with each sample's payload (on the reader thread).
+        on_attachment: called with each non-empty sample's attachment (``None``: none) just
+            before ``on_bytes`` (on the reader thread); default: attachments are ignored.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, on_bytes: Callable[[bytes], None]) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        on_bytes: Callable[[bytes], None],
+        on_attachment: Callable[[bytes | None], None] | None = None,
+    ) -> None:
         self._closed = False
         self._on_bytes = on_bytes
+        self._on_attachment = on_attachment
         self._wake = session.declare_publisher(key)
         self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(1024))
         self._thread = threading.Thread(target=self._drain, name=f"bus-reader-{key}", daemon=True)
@@ -59,7 +73,8 @@ class ChannelReader:
     def _drain(self) -> None:
         while True:
             try:
-                data = self._sub.recv().payload.to_bytes()
+                sample = self._sub.recv()
+                data = sample.payload.to_bytes()
             except (zenoh.ZError, RuntimeError, StopIteration):
                 return
             if self._closed:
@@ -67,6 +82,9 @@ class ChannelReader:
                     self._sub.undeclare()
                 return
             if data:
+                if self._on_attachment is not None:
+                    attachment = sample.attachment
+                    self._on_attachment(None if attachment is None else attachment.to_bytes())
                 self._on_bytes(data)
 
     def close(self) -> None:
@@ -84,6 +102,9 @@ class ChannelReader:
 class BusPort:
     """A byte stream over two bus keys, with the part of pyserial's API SerialBoard uses.
 
+    :attr:`stages` holds the gateway's stage times ``(gateway_s, radio_s)`` [s] of the last
+    sample received since the last :meth:`write` (:mod:`.stages`), ``None`` before one arrives.
+
     Args:
         session: the agent's bus session.
         tx_key: key the written bytes are put on.
@@ -96,8 +117,14 @@ class BusPort:
         self._buffer = bytearray()
         self._cond = threading.Condition()
         self._closed = False
+        self.stages: tuple[float, float] | None = None
         self._pub = session.declare_publisher(tx_key, **bus.TICK_PATH_QOS)
-        self._reader = ChannelReader(session, rx_key, self._received)
+        self._reader = ChannelReader(session, rx_key, self._received, self._attachment)
+
+    def _attachment(self, attachment: bytes | None) -> None:
+        stages = decode_stages(attachment)
+        if stages is not None:
+            self.stages = stages
 
     def _received(self, data: bytes) -> None:
         with self._cond:
@@ -125,6 +152,7 @@ class BusPort:
         """Put ``data`` on the tx key."""
         if self._closed:
             raise OSError("bus port closed")
+        self.stages = None
         self._pub.put(bytes(data))
         return len(data)
 
@@ -186,6 +214,23 @@ class XBeeBoard(SerialBoard):
         self.plant = plant
         self.dt = dt
         self.robot: Any | None = None
+        self._exchanged = False
+
+    def exchange(self, writes: Mapping[int, int], reads: Sequence[int]) -> TickReply:
+        """:meth:`SerialBoard.exchange`, noting it for :meth:`take_link_stages`."""
+        self._exchanged = True
+        return super().exchange(writes, reads)
+
+    def take_link_stages(self) -> tuple[float, float]:
+        """The gateway's stage times ``(gateway_s, radio_s)`` [s] of the last answer of the
+        exchanges since the previous call, for the agent's tick ledger: ``(0, 0)`` when there
+        was no exchange, NaN when none was answered with stage times (the exchange failed)."""
+        if not self._exchanged:
+            return 0.0, 0.0
+        self._exchanged = False
+        port = self._port
+        stages = port.stages if isinstance(port, BusPort) else None
+        return (math.nan, math.nan) if stages is None else stages
 
     def _bus_port(self, _url: str, _baud: int, poll_s: float) -> SerialPort:
         session = self._require_session()

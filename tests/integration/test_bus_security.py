@@ -25,6 +25,7 @@ import pytest
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import Credentials
+from hilswarm.agents.mocap import frame_clock
 from hilswarm.agents.mocap import message as mocap_message
 from hilswarm.orchestrator.bus_access import GATEWAY, MOCAP, OPERATOR, VIEWER, agent_user
 from swarm_harness import (
@@ -139,8 +140,9 @@ def forgeries(
     ``target`` is the attacked agent and ``body`` its mocap rigid body. Besides the swarm's
     own keys (tick, control, y, status, telemetry) they cover the keys that reach hardware or
     the record: the board link over the XBee gateway (``link/tx``, ``link/rx``, the simulated
-    robot's UART ``link/robot/{in,out}``), mocap poses and status, the simulated plant's true
-    pose, the gateway's fault commands and status, the manager's status, ``u`` and ``x_hat``.
+    robot's UART ``link/robot/{in,out}``), mocap poses and status, the mocap frame clock the
+    manager locks its ticks to (``mocap_clock``), the simulated plant's true pose, the
+    gateway's fault commands and status, the manager's status, ``u`` and ``x_hat``.
     What the principal's role allows is left out (the operator may ask the manager to stop and
     send ``gateway/sim``; the mocap process puts poses; the gateway relays link bytes).
     """
@@ -171,6 +173,8 @@ def forgeries(
         sent += [
             (keys.mocap(body), pose),
             (keys.mocap_status, bus.encode_json({"state": "lost", "detail": "forged"})),
+            # a frame clock half a period off the real frames would shift every tick
+            (keys.mocap_clock, frame_clock.encode(10**6, FORGED)),
         ]
     if user != GATEWAY:
         sent += [
@@ -344,8 +348,9 @@ def test_hostile_clients_cannot_reach_boards_poses_or_the_record(
     tmp_path: Path, runs: list[RunProcess], sessions: list[zenoh.Session]
 ) -> None:
     """The leader's board link (over the gateway), its mocap body's pose, the mocap and gateway
-    status, the manager's status, its u and x_hat: forged with every other principal's
-    credentials, none reaches the agents, the gateway, the mocap process or the recording."""
+    status, the mocap frame clock, the manager's status, its u and x_hat: forged with every
+    other principal's credentials, none reaches the agents, the gateway, the mocap process, the
+    manager or the recording."""
     run = RunProcess(tmp_path, mocap_xbee_run(tmp_path), "--no-check")
     runs.append(run)
     spy = connect_spy(run, "lead_follow_mocap")
@@ -383,6 +388,7 @@ def test_hostile_clients_cannot_reach_boards_poses_or_the_record(
         keys.link_robot("leader", "out"),
         keys.mocap("frisbee1"),
         keys.mocap_status,
+        keys.mocap_clock,
         keys.manager_status,
         keys.u("leader"),
         keys.x_hat("leader"),

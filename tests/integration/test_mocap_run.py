@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hilswarm.agents import bus
 from swarm_harness import (
     REPO,
     RunProcess,
@@ -140,3 +141,128 @@ def test_the_mocap_server_lost_stops_the_run_and_no_stale_pose_is_used(
         lost = np.flatnonzero(~np.all(np.isfinite(y), axis=1))
         if lost.size:
             assert np.all(np.isnan(y[lost[0] :])), agent
+
+
+#: The lock test's control rate [Hz]: 100 Hz frames / 23 Hz ticks is no integer, so free
+#: ticks would meet the frames at every phase (docs/mocap.md, Benchmark).
+LOCK_RATE_HZ = 23.0
+#: Frame period of the demo's 100 Hz cameras [s].
+FRAME_S = 0.01
+
+
+def frame_lock_events(recording: dict) -> list[tuple[int, str]]:
+    """``(k, detail)`` of the manager's ``frame_lock`` records, in order."""
+    return [
+        (m["k"], m["detail"])
+        for m in recording.get("/orchestrator/status", [])
+        if m.get("state") == "frame_lock"
+    ]
+
+
+def phase_spread(times: np.ndarray, period: float) -> float:
+    """Spread of ``times`` modulo ``period`` [s]: the half-width of the smallest arc holding
+    90 % of them (0: every time at one phase; period / 2 and more: spread all over)."""
+    phases = np.sort(np.mod(times, period))
+    n = phases.size
+    keep = max(1, int(np.ceil(0.9 * n)))
+    wrapped = np.concatenate([phases, phases + period])
+    return float(np.min(wrapped[keep - 1 : keep - 1 + n] - wrapped[:n]) / 2)
+
+
+def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    """Ticks follow the camera frames: every tick is released on the frame grid (plus the lag)
+    and most ticks' poses are no older than the lag and a small margin. The mocap process
+    stopped (SIGSTOP) for a second: the ticks go on at once on the free clock, and lock
+    again when frames come back; a pause and resume keeps the lock. (Free ticks at 23 Hz
+    would meet the 100 Hz frames at every phase: the pose's age spread over a whole frame
+    period, the release instants too.)"""
+    lag_ms = 2.0
+    experiment = variant(
+        tmp_path,
+        **{
+            "rate_hz = 20.0": f"rate_hz = {LOCK_RATE_HZ}",
+            "duration_s = 20.0": "duration_s = 30.0",
+            "hold_frames = 50 ": f"tick_lag_ms = {lag_ms}\nhold_frames = 500 ",
+            "latency_s = 0.003 ": "latency_s = 0.0 ",
+            "dropout_rate = 0.002": "dropout_rate = 0.0",
+        },
+    )
+    run = RunProcess(tmp_path, experiment, "--duration", "8")
+    runs.append(run)
+
+    def mocap_process() -> list[int]:
+        return children_running(run.process.pid, b"hilswarm.agents.mocap.process")
+
+    wait_for(lambda: bool(mocap_process()), 60, "the mocap process")
+    pid = mocap_process()[0]
+    spy = connect_spy(run, "lead_follow_mocap")
+    try:
+        wait_for(lambda: spy.last_tick() >= 70 or run.process.poll() is not None, 90, "tick 70")
+        os.kill(pid, signal.SIGSTOP)  # no frames: the manager's lock times out
+        try:
+            stopped_at = spy.last_tick()
+            # the ticks go on without frames (for a second of ticks)
+            wait_for(lambda: spy.last_tick() >= stopped_at + 23, 30, "ticks without frames")
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        resumed_at = spy.last_tick()
+        wait_for(lambda: spy.last_tick() >= resumed_at + 40, 60, "ticks with frames again")
+        spy.control(bus.ControlCommand.PAUSE, "test pause")
+        wait_for(lambda: spy.manager_state() == "paused", 30, "the manager's paused status")
+        paused_at = spy.last_tick()
+        spy.control(bus.ControlCommand.RESUME, "test resume")
+        wait_for(lambda: spy.last_tick() >= paused_at + 30, 60, "ticks after the resume")
+    finally:
+        spy.close()
+    assert run.wait(RUN_TIMEOUT_S) == 0, run.output()
+    recording = read_recording(run.out)
+
+    # The lock's record: locked, free while there were no frames, locked again.
+    events = frame_lock_events(recording)
+    kinds = [detail.split(":")[0] for _, detail in events]
+    assert kinds[0] == "locked", events
+    free = [k for k, detail in events if detail.startswith("free: no mocap frames")]
+    assert free and stopped_at <= free[0] <= stopped_at + 12, (stopped_at, events)
+    relocked = [k for k, d in events if d.startswith("locked") and k > free[0]]
+    assert relocked and relocked[0] <= resumed_at + 12, (resumed_at, events)
+
+    ticks = recording["/orchestrator/ticks"]
+    ks = np.array([m["k"] for m in ticks])
+    scheduled = np.array([m["scheduled_s"] for m in ticks])
+    assert ks.tolist() == list(range(ks.size)) and ks.size == int(8 * LOCK_RATE_HZ)
+    dt = 1.0 / LOCK_RATE_HZ
+    before = (ks >= 10) & (ks < stopped_at)
+    after = (ks > relocked[0]) & (ks <= paused_at)
+    resumed = (ks > paused_at + 1) & (ks < ks.size - 1)
+    assert resumed.sum() >= 25, (paused_at, ks.size)
+    # Locked: released on the frame grid, so modulo the frame period at one phase (the
+    # estimate's noise: well under a millisecond); free ticks would cover the whole period.
+    for part in (before, after, resumed):
+        assert phase_spread(scheduled[part], FRAME_S) < 0.5e-3, phase_spread(
+            scheduled[part], FRAME_S
+        )
+        steps = np.diff(scheduled[part])
+        assert np.all(np.abs(steps - dt) < FRAME_S + 1e-4), steps  # jitter within one frame
+    # Without frames: the free clock's period exactly (no stall, no frame grid).
+    without = (ks > free[0]) & (ks < relocked[0] - 1)
+    assert without.sum() >= 15, (free, relocked)
+    np.testing.assert_allclose(np.diff(scheduled[without]), dt, atol=1e-6)
+
+    # Frame time -> tick: the agents sense a lag (and a margin: the frame's quickest way to
+    # the manager, the tick's way to the agent) after the newest frame, for most ticks. The
+    # frames come every 10 ms, so that is the age of the pose modulo a frame period (a pose
+    # still on its way when the tick came is one frame older: a whole period more). Free
+    # ticks at 23 Hz would sense at every phase of the frames: about 40 % in this 4 ms window.
+    for agent in ("leader", "f1", "f2"):
+        rows = recording[f"/{agent}/telemetry/mocap"]
+        by_k = {int(r["k"]): r["latency_s"] for r in rows}
+        latency = np.array(
+            [by_k[k] for k in ks[before | after | resumed] if k in by_k and np.isfinite(by_k[k])]
+        )
+        assert latency.size > 80, (agent, latency.size)
+        since_frame = np.mod(latency, FRAME_S)
+        window = (since_frame >= lag_ms * 1e-3 - 1e-3) & (since_frame < lag_ms * 1e-3 + 3e-3)
+        assert np.mean(window) > 0.6, (agent, np.percentile(since_frame, [10, 50, 90]))
+        assert np.median(latency) < FRAME_S, agent  # mostly the newest frame's pose

@@ -12,6 +12,27 @@ from hilswarm.agents.link.simavr import locate_build
 from swarm_harness import REPO, RunProcess, connect_spy, read_recording, wait_for
 
 pytestmark = [pytest.mark.integration, pytest.mark.firmware, pytest.mark.slow]
+NAMES = ("leader", "f1", "f2", "f3", "f4", "f5")
+
+
+def _gateway_ledgers(recording: dict, ticks: int) -> dict[str, list[dict]]:
+    """Per agent its ledger of every tick, checked: the gateway stage of each tick is there
+    and the stages add up (gateway + radio + bus hops = link round trip <= answer time)."""
+    ledgers: dict[str, list[dict]] = {name: [] for name in NAMES}
+    messages = recording["/orchestrator/ticks"]
+    assert len(messages) == ticks
+    for message in messages:
+        for name in NAMES:
+            entry = message["agents"][name]
+            where = (message["k"], name, entry)
+            assert None not in (entry["gateway_s"], entry["radio_s"]), where
+            assert entry["gateway_s"] >= 0 and entry["radio_s"] >= 0, where
+            assert entry["gateway_bus_s"] >= 0, where  # gateway + radio <= link round trip
+            total = entry["gateway_bus_s"] + entry["gateway_s"] + entry["radio_s"]
+            assert total == pytest.approx(entry["link_s"], abs=1e-9), where
+            assert entry["link_s"] <= entry["answer_s"], where
+            ledgers[name].append(entry)
+    return ledgers
 
 
 @pytest.mark.usefixtures("firmware_built")  # the robot behind the radio runs it
@@ -30,6 +51,11 @@ def test_xbee_swarm_demo_runs_and_every_robot_moves(runs: list[RunProcess], tmp_
         ys = recording[f"/{name}/y"]
         assert len(ys) == 60, name
         assert ys[-1]["x"] > x0 + 0.1, (name, ys[-1])  # it drove forward: the loop is closed
+    # the latency ledger: by unicast each tick's answer is the robot's own, through the radio
+    for name, ledger in _gateway_ledgers(recording, 60).items():
+        assert ledger[0]["link_s"] < 1e-3 and ledger[0]["radio_s"] == 0.0  # tick 0: no exchange
+        for entry in ledger[1:]:
+            assert entry["radio_s"] > 1e-3, (name, entry)  # UARTs and air: milliseconds
 
 
 def _variant(tmp_path: Path) -> Path:
@@ -99,16 +125,20 @@ def test_coordinator_unplugged_every_xbee_agent_goes_safe_then_it_reconnects(
 
 
 @pytest.mark.usefixtures("firmware_built")  # the robot behind the radio runs it
+@pytest.mark.parametrize("answer", ["wait", "at_once"])
 def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
-    runs: list[RunProcess], tmp_path: Path
+    runs: list[RunProcess], tmp_path: Path, answer: str
 ) -> None:
     try:
         locate_build("duemilanove")
     except SimulatorError as exc:
         pytest.skip(str(exc))
-    run = RunProcess(tmp_path, REPO / "graphs" / "xbee_swarm_broadcast.toml", "--duration", "2")
+    path = tmp_path / f"xbee_swarm_broadcast_{answer}.toml"
+    text = (REPO / "graphs" / "xbee_swarm_broadcast.toml").read_text()
+    path.write_text(text.replace('mode = "broadcast"', f'mode = "broadcast"\nanswer = "{answer}"'))
+    run = RunProcess(tmp_path, path, "--duration", "2")
     runs.append(run)
-    assert run.wait(300) == 0, run.output()
+    assert run.wait(300) == 0, run.output()  # stale answers are the mode's: not degraded
     output = run.output()
     assert "XBee gateway: READY" in output and "completed" in output, output
     recording = read_recording(run.out)
@@ -122,3 +152,17 @@ def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
         assert robot["sections"] >= 100, name  # its outputs went by broadcast, every tick
         assert robot["tx_frames"] < 20, name  # by unicast only HELLO, CONFIG (and their retries)
         assert robot["stale_replies"] >= 50, name  # reply_every = 5: most answers stale
+    # the agents count the STALE answers (status, the run's summary: a note) and their
+    # ledger shows them: the gateway's own answers, no radio stage
+    for name, ledger in _gateway_ledgers(recording, 100).items():
+        counted = [m["stale_samples"] for m in recording[f"/{name}/status"] if "stale_samples" in m]
+        assert counted, recording[f"/{name}/status"]
+        stale = counted[-1]  # the last status holds the total
+        assert f"note: agent {name}: {stale} stale samples" in output, output
+        own = [entry for entry in ledger[1:] if entry["radio_s"] == 0.0]
+        # the counter also has the exchange that pushes the safe outputs at the end (no tick)
+        assert len(own) <= stale <= len(own) + 1, (name, len(own), stale)
+        if answer == "at_once":  # every answer but the robot's first reply
+            assert stale >= 95, (name, stale)
+        else:  # reply_every = 5: the robot's own replies every 5th tick, through the radio
+            assert 70 <= stale <= 85, (name, stale)
