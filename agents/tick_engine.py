@@ -174,6 +174,9 @@ class TickEngine:
         self.clocked: bool | None = None
         self._t0 = math.nan  # self-clocked: tick j is due at t0 + j * dt [s]
         self._first = 0  # self-clocked: the schedule's first tick
+        # self-clocked: the anchor before it (t0, first), which still times the ticks before
+        # ``_first`` this agent has not run yet (a new anchor may arrive just before them)
+        self._prev: tuple[float, int] | None = None
         self._last = -1  # self-clocked: its last tick (-1: no schedule)
         self._taken_due = math.nan  # self-clocked: when tick self.k was due [s]
         #: Self-clocked: per neighbour, the ticks that used no data for it although the
@@ -305,6 +308,10 @@ class TickEngine:
             if too_far:
                 self.dropped["schedule_time"] += 1  # it would race the agent ahead
                 return False
+        if self.clocked and first > self._first and self.k + 1 < first:
+            self._prev = (self._t0, self._first)  # ticks before ``first`` keep their times
+        elif first <= self.k + 1:
+            self._prev = None
         self.clocked = self.realtime = True
         self._t0, self._first, self._last = t0, first, last
         self._lost = frozenset(names[i] for i in missing) if missing else _NOBODY
@@ -314,10 +321,25 @@ class TickEngine:
         """Self-clocked: when the next tick is due [s] (``None``: none is, or not running)."""
         if not (self.clocked and self.running):
             return None
-        upcoming = max(self._first, self.k + 1)
+        upcoming = self._upcoming()
         if upcoming > self._last:
             return None
-        return self._t0 + upcoming * self.dt
+        return self._due(upcoming)
+
+    def _upcoming(self) -> int:
+        """Self-clocked: the next tick this agent may run."""
+        prev = self._prev
+        if prev is not None and self.k + 1 < self._first:
+            return max(prev[1], self.k + 1)
+        return max(self._first, self.k + 1)
+
+    def _due(self, k: int) -> float:
+        """Self-clocked: when tick ``k`` is due [s] (before the anchor's first tick: on the
+        anchor before it)."""
+        prev = self._prev
+        if prev is not None and k < self._first:
+            return prev[0] + k * self.dt
+        return self._t0 + k * self.dt
 
     def take_inputs_missing(self) -> dict[str, list[int]]:
         """The ticks that used no data for a neighbour since the last call (see
@@ -434,8 +456,13 @@ class TickEngine:
         due = self.next_due()
         if due is None or now < due:
             return None
-        upcoming = max(self._first, self.k + 1)
-        k = min(self._last, max(upcoming, math.floor((now - self._t0) / self.dt)))
+        upcoming, dt = self._upcoming(), self.dt
+        if now >= self._t0 + max(upcoming, self._first) * dt:  # on the anchor in force
+            k = max(upcoming, self._first, math.floor((now - self._t0) / dt))
+        else:  # the ticks before its first, on the anchor before it
+            prev_t0 = self._prev[0] if self._prev is not None else self._t0
+            k = max(upcoming, min(self._first - 1, math.floor((now - prev_t0) / dt)))
+        k = min(self._last, k)
         skipped = k - self.k - 1 if self.k >= 0 else 0
         neighbours = None
         if gather and k > 0:
@@ -445,8 +472,10 @@ class TickEngine:
                 for name, values in neighbours.items():
                     if values is None and name not in lost:
                         self.inputs_missing.setdefault(name, []).append(k)
+        self._taken_due = self._due(k)
         self.k = k
-        self._taken_due = self._t0 + k * self.dt
+        if k + 1 >= self._first:
+            self._prev = None  # the anchor before is done with
         return Tick(k, k * self.dt, skipped, neighbours)
 
     def gather(

@@ -299,6 +299,24 @@ def test_a_schedule_ends_at_its_last_tick_and_a_new_anchor_resumes_it() -> None:
     assert (tick.k, tick.skipped) == (4, 0)
 
 
+def test_a_moved_anchor_arriving_early_keeps_the_ticks_before_it_on_time() -> None:
+    """The manager moves the schedule (a frame lock) from tick 3 on while the agent has not
+    run tick 2 yet: tick 2 still runs at its time, tick 3 at the moved one; none skipped."""
+    e = clocked()
+    for k in range(2):
+        e.take(gather=False, now=T0 + k * DT)
+    moved = T0 + 0.3 * DT
+    assert e.on_schedule(3, 10**6, moved, DT, arrived=T0 + 1.9 * DT)
+    assert e.next_due() == pytest.approx(T0 + 2 * DT)
+    tick = e.take(gather=False, now=T0 + 2 * DT + 1e-5)
+    assert (tick.k, tick.skipped) == (2, 0)
+    assert e.next_due() == pytest.approx(moved + 3 * DT)
+    assert e.take(gather=False, now=moved + 3 * DT - 1e-6) is None
+    tick = e.take(gather=False, now=moved + 3 * DT)
+    assert (tick.k, tick.skipped) == (3, 0)
+    assert e.next_due() == pytest.approx(moved + 4 * DT)
+
+
 def test_forged_or_odd_schedules_are_rejected_and_counted() -> None:
     e = engine()
     arrived = T0 - 0.05

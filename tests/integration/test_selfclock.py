@@ -11,10 +11,12 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 from hilswarm.agents import bus
 from swarm_harness import (
+    REPO,
     RunProcess,
     Spy,
     agent_name_of,
@@ -226,3 +228,60 @@ def test_forged_and_odd_schedules_are_rejected_counted_and_never_fatal(
         assert dropped == {"schedule_dt": 1, "schedule_time": 2, "tick_mode": 1}, (name, dropped)
     # the forgeries did not move the schedule: hardly any tick was late after them
     assert sum(1 for m in ticks if m["late"]) < 40
+
+
+FRAME_S = 0.01  # the demo's mocap frame period [s] (100 Hz)
+
+
+def phase_spread(times: np.ndarray, period: float) -> float:
+    """Half-width of the smallest arc (modulo ``period``) holding 90 % of ``times`` [s]."""
+    phases = np.sort(np.mod(times, period))
+    n = phases.size
+    keep = max(1, int(np.ceil(0.9 * n)))
+    wrapped = np.concatenate([phases, phases + period])
+    return float(np.min(wrapped[keep - 1 : keep - 1 + n] - wrapped[:n]) / 2)
+
+
+@pytest.mark.slow
+def test_self_clocked_ticks_follow_the_frame_lock(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    """With ``[mocap]`` the frame lock moves each tick's due time; self-clocked, the manager
+    sends the moved schedule and the agents wake on the frame grid (23 Hz ticks, 100 Hz
+    frames: a new anchor about every tick)."""
+    lag_ms = 2.0
+    text = (REPO / "graphs" / "lead_follow_mocap.toml").read_text()
+    for old, new in {
+        "rate_hz = 20.0": "rate_hz = 23.0",
+        'mode = "realtime"': 'mode = "realtime"\nrealtime_clock = "shared"\n'
+        "max_late_fraction = 1.0\n#",
+        "hold_frames = 50 ": f"tick_lag_ms = {lag_ms}\nhold_frames = 500 ",
+        "latency_s = 0.003 ": "latency_s = 0.0 ",
+        "dropout_rate = 0.002": "dropout_rate = 0.0",
+    }.items():
+        assert old in text, old
+        text = text.replace(old, new, 1)
+    experiment = tmp_path / "experiment.toml"
+    experiment.write_text(text)
+    run = start(runs, tmp_path, experiment, "--duration", "4")
+    spy = connect_spy(run, "lead_follow_mocap")
+    spies.append(spy)
+    assert run.wait(240) == 0, run.output()
+    recording = read_recording(run.out)
+    events = [m["detail"] for m in recording["/orchestrator/status"] if m["state"] == "frame_lock"]
+    assert events and events[0].startswith("locked"), events
+    ticks = recording["/orchestrator/ticks"]
+    ks = np.array([m["k"] for m in ticks])
+    assert ks.tolist() == list(range(92))
+    assert spy.count("hilswarm/lead_follow_mocap/tick") > 20  # schedules as the lock moved
+    scheduled = np.array([m["scheduled_s"] for m in ticks])[10:]
+    assert phase_spread(scheduled, FRAME_S) < 0.5e-3, phase_spread(scheduled, FRAME_S)
+    for agent in ("leader", "f1", "f2"):  # the agents sensed just after the newest frame
+        rows = recording[f"/{agent}/telemetry/mocap"]
+        latency = np.array([r["latency_s"] for r in rows if r["k"] >= 10])
+        latency = latency[np.isfinite(latency)]
+        assert latency.size > 60, (agent, latency.size)
+        since_frame = np.mod(latency, FRAME_S)
+        window = (since_frame >= lag_ms * 1e-3 - 1e-3) & (since_frame < lag_ms * 1e-3 + 3e-3)
+        assert np.mean(window) > 0.6, (agent, np.percentile(since_frame, [10, 50, 90]))
+        assert np.median(latency) < FRAME_S, agent
