@@ -11,8 +11,9 @@ and the fraction of late ticks. Lockstep mode: speed as a multiple of real time.
     python benchmarks/swarm_ticks.py --agents 16 32 --rates 100 --seconds 4 --realtime-clock both
 
 ``--realtime-clock`` picks how realtime runs keep time (the experiment's ``realtime_clock``):
-``manager`` (one tick message per period), ``shared`` (the agents keep the manager's schedule
-themselves) or ``both`` (each configuration once each way, back to back after one baseline).
+``shared`` (the default, as ``hilswarm run``: the agents keep the manager's schedule
+themselves), ``manager`` (one tick message per period) or ``both`` (each configuration once
+each way, back to back after the baselines).
 
 Every run records to a temporary MCAP file through the recorder process, like ``hilswarm run``
 (``--record inline``: inside the manager process, on its ticking thread; ``--record off``: not
@@ -38,7 +39,7 @@ runs; its keys are stable (docs/running.md, "Benchmark JSON lines"):
 agent's mean; for the bare bus, one client's mean; its manager and recorder figures are
 ``null``); ``realtime_clock`` is the runtime's ``"manager"`` or ``"shared"`` in realtime
 (``null`` in lockstep and for the ticked bare bus; ``"shared"`` for the self-clocked bare
-bus, run beside self-clocked runtimes for information: the verdicts keep the ticked bare
+bus, run with ``--realtime-clock both`` for information: the verdicts keep the ticked bare
 bus); ``load_1min`` is the 1-minute load average when the configuration began (the
 benchmark's own processes raise it; ``--settle-load 1`` waits for a quiet machine before
 each run).
@@ -77,7 +78,7 @@ def ring_experiment(
     mode: str,
     seconds: float,
     vehicle: str,
-    realtime_clock: str = "manager",
+    realtime_clock: str = "shared",
 ) -> Path:
     """An experiment file: ``n`` agents on a two-way ring."""
     names = [f"r{i}" for i in range(n)]
@@ -122,7 +123,7 @@ class Result:
     agent_cpu_s: float  # one agent process's CPU per tick [s] (mean over the agents)
     startup_s: float  # agents started to every agent armed [s]
     load_1min: float  # the machine's 1-minute load average when the configuration began
-    realtime_clock: str = "manager"  # realtime: "manager" (tick messages) or "shared"
+    realtime_clock: str = "shared"  # realtime: "shared" (self-clocked) or "manager" (ticks)
 
     @property
     def label(self) -> str:
@@ -254,7 +255,7 @@ def run_once(
     record: str,
     vehicle: str,
     secure: bool = False,
-    realtime_clock: str = "manager",
+    realtime_clock: str = "shared",
 ) -> Result:
     """Run one configuration like ``hilswarm run`` does (agents, manager, recorder process).
 
@@ -481,9 +482,9 @@ def main(argv: list[str] | None = None) -> int:
         "own setting (bus.LEAN_RUNTIME, as hilswarm run) or Zenoh's defaults",
     )  # fmt: skip
     parser.add_argument(
-        "--realtime-clock", choices=("manager", "shared", "both"), default="manager",
-        help="realtime runs: tick messages from the manager (default), agents keeping the "
-        "manager's schedule on the shared monotonic clock, or both (paired, same baseline)",
+        "--realtime-clock", choices=("shared", "manager", "both"), default="shared",
+        help="realtime runs: agents keeping the manager's schedule on the shared monotonic "
+        "clock (default, as hilswarm run), tick messages from the manager, or both (paired)",
     )  # fmt: skip
     parser.add_argument("--no-lockstep", action="store_true")
     parser.add_argument(
@@ -531,7 +532,7 @@ def main(argv: list[str] | None = None) -> int:
             clocks = (
                 ["manager", "shared"] if args.realtime_clock == "both" else [args.realtime_clock]
             )
-            if mode == "realtime" and "shared" in clocks and not args.no_baseline:
+            if mode == "realtime" and len(clocks) > 1 and not args.no_baseline:
                 # the fair pair of a self-clocked runtime: the self-clocked bare bus (info)
                 settle(args.settle_load)
                 load = os.getloadavg()[0]

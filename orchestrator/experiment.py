@@ -164,9 +164,9 @@ class Experiment:
             (robots safe, the run ends) or ``"continue"`` unrecorded.
         max_late_fraction: realtime: late ticks above this fraction of all ticks make the run
             degraded (0..1).
-        realtime_clock: realtime: ``"manager"`` (one tick message per period) or
-            ``"shared"`` (agents on the orchestrator's host keep the manager's schedule on the
-            shared monotonic clock; docs/running.md, Ticks and modes).
+        realtime_clock: realtime: ``"shared"`` (agents on the orchestrator's host keep the
+            manager's schedule on the shared monotonic clock; the default) or ``"manager"``
+            (one tick message per period; docs/running.md, Ticks and modes).
         mocap: the ``[mocap]`` table (motion capture) as a
             :class:`~hilswarm.agents.mocap.config.MocapSettings`, or ``None``.
         gateway: the ``[gateway]`` table (XBee gateway) as a
@@ -189,7 +189,7 @@ class Experiment:
     lockstep_window: int = DEFAULT_LOCKSTEP_WINDOW
     on_recording_failure: Literal["stop", "continue"] = "stop"
     max_late_fraction: float = DEFAULT_MAX_LATE_FRACTION
-    realtime_clock: Literal["manager", "shared"] = "manager"
+    realtime_clock: Literal["shared", "manager"] = "shared"
     mocap: Any = None
     gateway: Any = None
 

@@ -19,9 +19,9 @@ subscription is known), and then sends ticks:
   ticks are released in step with the camera frames instead: tick k a small lag after the
   first frame at or after ``T0 + k * dt``, falling back to the free grid at once when frames
   stop (:mod:`hilswarm.orchestrator.frame_lock`).
-* ``realtime``, **self-clocked** (``realtime_clock = "shared"``, only when every agent runs on
-  this host and no XBee gateway follows the ticks): instead of one tick message per period the
-  manager sends a *schedule* (:class:`~hilswarm.agents.bus.ScheduleMessage`: T0 on
+* ``realtime``, **self-clocked** (``realtime_clock = "shared"``, the default; only when every
+  agent runs on this host and no XBee gateway follows the ticks): instead of one tick message
+  per period the manager sends a *schedule* (:class:`~hilswarm.agents.bus.ScheduleMessage`: T0 on
   CLOCK_MONOTONIC, dt, first and last tick) at the start, on every change (a pause ends it
   after the next tick, a resume re-anchors it, a lost agent is announced, the frame lock moves
   the due time of the next tick) and every :data:`SCHEDULE_REPEAT_S`; each agent wakes itself
@@ -190,7 +190,7 @@ class InstanceManager:
         #: Self-clocked realtime (see the module docstring): agents keep the schedule.
         self.self_clocked = (
             self._realtime
-            and getattr(experiment, "realtime_clock", "manager") == "shared"
+            and getattr(experiment, "realtime_clock", "shared") == "shared"
             and not remote
             and getattr(experiment, "gateway", None) is None
         )

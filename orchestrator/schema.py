@@ -143,10 +143,10 @@ class ExperimentSection(_Table):
     """Seed of every random generator of the run (noise, simulated motion capture)."""
     lockstep_window: int = Field(DEFAULT_LOCKSTEP_WINDOW, ge=1, le=MAX_LOCKSTEP_WINDOW)
     """Lockstep only: ticks an agent may run ahead of the slowest one (1: a barrier)."""
-    realtime_clock: Literal["manager", "shared"] = "manager"
-    """Realtime only: "manager" sends one tick message per period; "shared": agents on the
-    orchestrator's host keep the manager's schedule on the shared monotonic clock themselves
-    (tick messages stay when agents join from other hosts or an XBee gateway runs)."""
+    realtime_clock: Literal["shared", "manager"] = "shared"
+    """Realtime only: "shared" (default): agents on the orchestrator's host keep the manager's
+    schedule on the shared monotonic clock themselves (tick messages stay when agents join from
+    other hosts or an XBee gateway runs); "manager": one tick message per period."""
 
 
 class GraphSection(_Table):

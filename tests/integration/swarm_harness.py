@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import signal
 import subprocess
@@ -265,10 +266,17 @@ class Spy:
             return self.counts.get(key, 0)
 
     def last_tick(self) -> int:
-        """Index of the last tick message seen (-1 before any)."""
+        """Index of the last tick message seen (-1 before any); in a self-clocked realtime
+        run, the tick due now on the last schedule seen (same host: same monotonic clock)."""
         with self._lock:
             payload = self.last.get(self._legacy.tick)
-        return -1 if payload is None else bus.decode_tick(payload).k
+        if payload is None:
+            return -1
+        if bus.is_schedule(payload):
+            schedule = bus.decode_schedule(payload)
+            due = math.floor((time.monotonic() - schedule.t0) / schedule.dt)
+            return min(schedule.last, max(schedule.first - 1, due))
+        return bus.decode_tick(payload).k
 
     def manager_state(self) -> str:
         """The state the instance manager last announced on its status key ("" before any)."""

@@ -45,11 +45,11 @@ def manager(experiment: Experiment, **kwargs: Any) -> InstanceManager:
 
 
 def test_realtime_clock_is_read_checked_and_overridable(tmp_path: Path) -> None:
-    assert load_experiment(write(tmp_path, "")).realtime_clock == "manager"
+    assert load_experiment(write(tmp_path, "")).realtime_clock == "shared"  # the default
     shared = load_experiment(write(tmp_path, 'realtime_clock = "shared"'))
     assert shared.realtime_clock == "shared"
-    overridden = load_experiment(write(tmp_path, ""), overrides={"realtime_clock": "shared"})
-    assert overridden.realtime_clock == "shared"
+    overridden = load_experiment(write(tmp_path, ""), overrides={"realtime_clock": "manager"})
+    assert overridden.realtime_clock == "manager"
     experiment, problems = parse_experiment(write(tmp_path, 'realtime_clock = "wall"'))
     assert experiment is None
     assert [p.key for p in problems] == ["experiment.realtime_clock"], problems
@@ -66,4 +66,6 @@ def test_the_manager_self_clocks_only_realtime_runs_of_local_agents(tmp_path: Pa
         write(tmp_path, 'realtime_clock = "shared"'), overrides={"mode": "lockstep"}
     )
     assert not manager(lockstep).self_clocked
-    assert not manager(load_experiment(write(tmp_path, ""))).self_clocked
+    assert manager(load_experiment(write(tmp_path, ""))).self_clocked  # the default
+    ticked = load_experiment(write(tmp_path, 'realtime_clock = "manager"'))
+    assert not manager(ticked).self_clocked and manager(ticked).window == 1
