@@ -639,7 +639,7 @@ class InstanceManager:
             self._ticks.start(t0)  # tick k due at t0 + k dt, or in step with the mocap frames
             t0 = self._due(0)
             if clocked:  # the agents wake themselves at t0 + k * dt from now on
-                self._send_schedule(0, self.experiment.n_ticks - 1, t0)
+                self._send_schedule(0, self.experiment.n_ticks - 1, t0, record=True)
             self._wait_until(t0)
         if not self._stop_reason:
             if clocked:
@@ -787,7 +787,7 @@ class InstanceManager:
         t0 = self._due(started + 1) - (started + 1) * self.dt
         self._halt_after = None
         self._step_k = started + 1
-        self._send_schedule(started + 1, self.experiment.n_ticks - 1, t0)
+        self._send_schedule(started + 1, self.experiment.n_ticks - 1, t0, record=True)
         return t0
 
     def _count(self, account: TickAccount, late: list[int]) -> None:
@@ -940,13 +940,23 @@ class InstanceManager:
             if item[0] == _ALIVE:
                 self.alive.add(item[1])
 
-    def _send_schedule(self, first: int, last: int, t0: float) -> None:
+    def _send_schedule(self, first: int, last: int, t0: float, *, record: bool = False) -> None:
         """Self-clocked: send (and keep) the schedule: ticks ``first..last`` due at
-        ``t0 + k * dt`` [s, CLOCK_MONOTONIC], with the lost agents."""
+        ``t0 + k * dt`` [s, CLOCK_MONOTONIC], with the lost agents. ``record``: also as a
+        ``schedule`` event on ``/orchestrator/status`` (the start, a pause, a resume, a loss;
+        not the repeats and the frame lock's moves)."""
         self._schedule = (first, last, t0)
-        message = bus.ScheduleMessage(first, last, t0, self.dt, tuple(sorted(self.lost)))
+        missing = tuple(sorted(self.lost))
+        message = bus.ScheduleMessage(first, last, t0, self.dt, missing)
         self._tick_pub.put(bus.encode_schedule(message))
         self._schedule_sent = self._clock()
+        if record:
+            lost = ", ".join(self.names[i] for i in missing) or "none"
+            detail = (
+                f"self-clocked: ticks {first}..{last} due at T0 + k dt, T0 "
+                f"{t0 - self._clock_origin:.6f} s (the manager's clock origin); lost: {lost}"
+            )
+            self._record_event(ORCHESTRATOR, "schedule", k=first, detail=detail)
 
     def _send_tick(self, k: int, missing: Sequence[int]) -> None:
         message = bus.TickMessage(k, k * self.dt, tuple(missing), realtime=self._realtime)
@@ -970,7 +980,7 @@ class InstanceManager:
             if self.self_clocked:  # the agents stop after the next tick (no race with it)
                 self._halt_after = self._step_k
                 first, _, t0 = self._schedule
-                self._send_schedule(first, max(first, self._halt_after), t0)
+                self._send_schedule(first, max(first, self._halt_after), t0, record=True)
             self._record_event(ORCHESTRATOR, "paused", k=k, detail=reason)
             self._publish_state("paused", reason)
         elif command is bus.ControlCommand.RESUME and self._paused:
@@ -1010,7 +1020,7 @@ class InstanceManager:
             # Tell the neighbours now: they may be waiting for this agent's output.
             self._send_tick(self._tick.released, sorted(self.lost))
         elif self.self_clocked and not self._stop_reason:
-            self._send_schedule(*self._schedule)  # the same schedule, with the lost agent
+            self._send_schedule(*self._schedule, record=True)  # the same, with the lost agent
         self.summary.lost.append(name)
         self.summary.lost_at[name] = AgentEvent(k, reason)
         logger.warning("agent %s lost at tick %d: %s", name, k, reason)

@@ -109,6 +109,8 @@ def test_self_clocked_run_completes_and_accounts_every_tick(
     first = schedule(spy)
     assert first is not None and (first.first, first.last) == (0, 49)
     assert spy.count("hilswarm/toy/tick") <= 3
+    events = [m for m in recording["/orchestrator/status"] if m.get("state") == "schedule"]
+    assert len(events) == 1 and events[0]["detail"].startswith("self-clocked: ticks 0..49")
     for name in AGENTS:
         ks = [m["k"] for m in recording[f"/{name}/y"]]
         assert ks == sorted(set(ks)) and ks[-1] == 49, (name, ks)
@@ -159,6 +161,12 @@ def test_self_clocked_pause_ends_the_schedule_and_resume_re_anchors_it(
         assert held not in late and held + 1 not in late, (name, held, late)
         agent_states = [m["state"] for m in statuses(recording, name)]
         assert agent_states[agent_states.index("paused") + 1] == "running", agent_states
+    schedules = [m["detail"] for m in recording["/orchestrator/status"] if m["state"] == "schedule"]
+    assert [d.split(" due")[0] for d in schedules] == [
+        "self-clocked: ticks 0..29999",
+        f"self-clocked: ticks 0..{held}",  # the pause
+        f"self-clocked: ticks {held + 1}..29999",  # the resume
+    ], schedules
 
 
 def test_self_clocked_killed_agent_is_lost_and_announced(
