@@ -710,9 +710,17 @@ def decode_control(payload: bytes | bytearray | memoryview) -> tuple[ControlComm
 #: Counter fields an agent's status message may carry (see ``hilswarm.agents.agent``):
 #: ``malformed`` {key: count}, ``dropped`` {reason: count}, ``skipped`` (ticks missed),
 #: ``link_faults`` (board link faults) and ``stale_samples`` (board answers marked STALE: the
-#: XBee gateway's answers from a robot's last samples). Only non-zero ones are sent; the
-#: recorder keeps them.
-STATUS_COUNTER_FIELDS = ("malformed", "dropped", "skipped", "link_faults", "stale_samples")
+#: XBee gateway's answers from a robot's last samples), and, self-clocked, ``inputs_missing``
+#: {neighbour: [tick, ...]} (ticks run without that neighbour's output). Only non-zero ones
+#: are sent; the recorder keeps them.
+STATUS_COUNTER_FIELDS = (
+    "malformed",
+    "dropped",
+    "skipped",
+    "link_faults",
+    "stale_samples",
+    "inputs_missing",
+)
 
 
 def encode_json(data: dict[str, Any]) -> bytes:

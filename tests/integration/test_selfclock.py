@@ -125,6 +125,31 @@ def test_self_clocked_run_completes_and_accounts_every_tick(
         assert set(noted.get(HEARS[name], [])) <= set(ks), (name, noted)
 
 
+def test_self_clocked_ticks_without_a_slow_neighbours_output_are_recorded(
+    tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
+) -> None:
+    """b takes 30 ms per 20 ms tick: a (which hears b) runs its ticks on time without b's
+    output on many of them, and says which in its status messages; the record matches what
+    a's controller saw exactly."""
+    experiment = shared_clock_experiment(tmp_path / "toy.toml", duration_s=2.0)
+    text = experiment.read_text(encoding="utf-8").replace(
+        "[agents.b]\ninitial_state = [1.0]\n",
+        "[agents.b]\ninitial_state = [1.0]\nparams = { gain = 2.0, work_s = 0.03 }\n",
+    )
+    experiment.write_text(text, encoding="utf-8")
+    run = start(runs, tmp_path, experiment)
+    assert run.wait(60) == 3, run.output()  # degraded: b skipped ticks
+    recording = read_recording(run.out)
+    ticks = recording["/orchestrator/ticks"]
+    assert [m["k"] for m in ticks] == list(range(100))
+    noted = noted_missing(recording, "a")
+    assert set(noted) == {"b"} and len(noted["b"]) > 10, noted
+    assert recording["/a/x_hat"][-1]["values"][0] == len(noted["b"])
+    a_ticks = {m["k"] for m in recording["/a/y"]}
+    b_late = {m["k"] + 1 for m in ticks if "b" in m["late"]}
+    assert set(noted["b"]) <= a_ticks and len(set(noted["b"]) & b_late) > 10
+
+
 def test_self_clocked_pause_ends_the_schedule_and_resume_re_anchors_it(
     tmp_path: Path, runs: list[RunProcess], spies: list[Spy]
 ) -> None:
