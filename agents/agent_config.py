@@ -207,6 +207,9 @@ def mocap_pose_source(config: AgentConfig, vehicle: Any, plant: Any | None) -> A
         start_timeout_s=settings.start_timeout_s,
         truth=feed,
         on_lost=vehicle.enter_safe_mode,
+        # Ticks locked to the frames: a sense may wait, bounded, for its frame's pose.
+        frame_period_s=1.0 / settings.rate_hz,
+        pose_wait_s=settings.pose_wait_s,
     )
     source.add_telemetry(vehicle.telemetry)
     return source

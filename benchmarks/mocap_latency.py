@@ -111,15 +111,15 @@ def percentile_ms(values: np.ndarray, q: float) -> float | None:
 
 
 def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float,
-                    seconds: float, locked: bool = True,
-                    lag_ms: float | None = None) -> str:  # fmt: skip
+                    seconds: float, locked: bool = True, lag_ms: float | None = None,
+                    pose_wait_ms: float | None = None) -> str:  # fmt: skip
     """The experiment: ``agents`` Frisbee bots in a lead/follow chain, poses from ``sim``.
 
     Agent ``a00`` drives a 1 m square of waypoints; agent ``aNN`` follows ``a(NN-1)`` at 0.3 m
     (the demo ``graphs/lead_follow_mocap.toml``, longer). Camera noise as in the demo, no
     simulated camera latency and no dropouts: the figures are the software path's. ``locked``:
     the ticks in step with the frames (``[mocap] tick_lock``, the default), ``lag_ms`` its
-    ``tick_lag_ms`` (``None``: the default).
+    ``tick_lag_ms``, ``pose_wait_ms`` the agents' ``pose_wait_ms`` (``None``: the defaults).
     """
     names = [f"a{i:02d}" for i in range(agents)]
     rows = [[1 if j == i - 1 else 0 for j in range(agents)] for i in range(agents)]
@@ -141,6 +141,7 @@ def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float
         "start_timeout_s = 30.0",
         f"tick_lock = {'true' if locked else 'false'}",
         *([] if lag_ms is None else [f"tick_lag_ms = {lag_ms!r}"]),
+        *([] if pose_wait_ms is None else [f"pose_wait_ms = {pose_wait_ms!r}"]),
         "",
         "[mocap.sim]",
         "noise_std_m = 0.002",
@@ -263,8 +264,8 @@ def ticks_locked(out: Path) -> float | None:
 
 
 def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate_hz: float,
-                       *, locked: bool = True,
-                       lag_ms: float | None = None) -> dict[str, Any]:  # fmt: skip
+                       *, locked: bool = True, lag_ms: float | None = None,
+                       pose_wait_ms: float | None = None) -> dict[str, Any]:  # fmt: skip
     """One ``hilswarm run`` at mocap rate ``rate_hz``: frame time -> controller figures."""
     load = load_1min()
     with tempfile.TemporaryDirectory(prefix="mocap_latency-") as tmp:
@@ -273,7 +274,7 @@ def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate
         experiment.write_text(
             experiment_text(agents=agents, mocap_rate_hz=rate_hz,
                             control_rate_hz=control_rate_hz, seconds=WARMUP_S + seconds,
-                            locked=locked, lag_ms=lag_ms)
+                            locked=locked, lag_ms=lag_ms, pose_wait_ms=pose_wait_ms)
         )  # fmt: skip
         began = time.monotonic()
         status, out, tail = run_experiment(folder, experiment, WARMUP_S + seconds)
@@ -281,7 +282,10 @@ def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate
         latency, delivery, ticks, lost = controller_latencies(out, agents)
         locked_fraction = ticks_locked(out)
     period = 1.0 / rate_hz
-    settings = MocapSettings(system="sim", rate_hz=rate_hz, tick_lag_ms=lag_ms)
+    settings = MocapSettings(
+        system="sim", rate_hz=rate_hz, tick_lock=locked, tick_lag_ms=lag_ms,
+        pose_wait_ms=pose_wait_ms,
+    )  # fmt: skip
     p99 = percentile_ms(latency, 99)
     within = round(float(np.mean(latency < period)), 4) if latency.size else None
     expected = round(agents * control_rate_hz * seconds)
@@ -312,6 +316,7 @@ def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate
         "locked": locked,
         "tick_lag_ms": round(settings.tick_lag_s * 1e3, 3) if locked else None,
         "ticks_locked": locked_fraction,
+        "pose_wait_ms": round(settings.pose_wait_s * 1e3, 3),
         "load_1min": load,
         "run_exit": status,
         "run_wall_s": round(wall, 1),
@@ -450,6 +455,12 @@ def main(argv: list[str] | None = None) -> int:
         help="[mocap] tick_lag_ms of the locked ticks (default: the experiment default)",
     )
     parser.add_argument(
+        "--pose-wait-ms",
+        type=float,
+        default=None,
+        help="[mocap] pose_wait_ms of the agents (default: the experiment default; 0: no wait)",
+    )
+    parser.add_argument(
         "--no-subscriber",
         action="store_true",
         help="skip the subscriber-level figure (mocap path without a run)",
@@ -464,8 +475,9 @@ def main(argv: list[str] | None = None) -> int:
     failed = False
     for rate in args.rates:
         result = measure_controller(
-            rate, agents, seconds, args.control_rate, locked=not args.free, lag_ms=args.lag_ms
-        )
+            rate, agents, seconds, args.control_rate, locked=not args.free, lag_ms=args.lag_ms,
+            pose_wait_ms=args.pose_wait_ms,
+        )  # fmt: skip
         tail = result.pop("_tail")
         subscriber: dict[str, Any] = {
             "subscriber_p50_ms": None, "subscriber_p99_ms": None, "subscriber_delivered": None,
@@ -488,7 +500,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{result['target_p99_ms']} ms; "
             + (
                 f"ticks locked to the frames ({result['ticks_locked']} of them), lag "
-                f"{result['tick_lag_ms']} ms"
+                f"{result['tick_lag_ms']} ms, pose wait at most {result['pose_wait_ms']} ms"
                 if result["locked"]
                 else "ticks free of the frames"
             )

@@ -787,6 +787,15 @@ def mocap_settings(
                 f"({1000.0 / section.rate_hz:.3g} ms at rate_hz = {section.rate_hz:g})",
             )
         )
+    if section.pose_wait_ms is not None and section.pose_wait_ms >= 1000.0 / section.rate_hz:
+        problems.append(
+            Problem(
+                file,
+                key_path(where, ("pose_wait_ms",)),
+                f"{section.pose_wait_ms:g} ms is not under one frame period "
+                f"({1000.0 / section.rate_hz:.3g} ms at rate_hz = {section.rate_hz:g})",
+            )
+        )
     if problems:
         return None, problems
     from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap files only

@@ -250,7 +250,10 @@ class MocapSection(_Table):
     """Release the realtime ticks in step with the frames (a lag after a frame comes)."""
     tick_lag_ms: float | None = Field(None, ge=0.0, le=1000.0)
     """A locked tick is released this long after its frame reaches the host [ms], under one
-    frame period (default: 2 ms, at most a quarter of a frame period)."""
+    frame period (default: 3 ms, at most 0.3 of a frame period)."""
+    pose_wait_ms: float | None = Field(None, ge=0.0, le=1000.0)
+    """With tick_lock: a sense whose frame's pose is not in yet waits for it at most this long
+    [ms], under one frame period (default 0: never waits)."""
     sim: MocapSimSection | None = None
     """system = "sim" only: the simulated cameras."""
 

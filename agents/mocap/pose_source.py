@@ -26,8 +26,21 @@ none) — what the simulated cameras see.
 Per tick it appends to the vehicle's telemetry channel ``mocap`` (:data:`TELEMETRY_FIELDS`):
 frame number, frame time [s], latency frame time -> this sense [s] (same host only), frames
 occluded, the pose as position + quaternion (for ``/<agent>/pose``), the filter's innovation,
-and the delivery frame time -> the pose's arrival at this agent [s] (the rest of the latency is
-the wait for the tick).
+the delivery frame time -> the pose's arrival at this agent [s] (the rest of the latency is
+the wait for the tick), and how long this sense waited for its frame's pose [s] (below).
+
+**Waiting for the tick's frame.** With the realtime ticks locked to the frames (``[mocap]
+tick_lock``, docs/mocap.md) each tick is due a short lag after a frame reached the host; its
+pose may still be on its way to this agent (the bus delivery's tail is longer than the lag).
+Then the newest pose here is the previous frame's, more than half a frame period old, and
+using it would add a whole frame period of latency. So, given ``pose_wait_s`` > 0, a sense whose
+newest pose arrived more than half a frame period ago waits for the next frame's pose, at most
+``pose_wait_s`` (``[mocap] pose_wait_ms``; 0 by default: docs/mocap.md has the measured
+trade-off), and
+then uses the newest pose it has. Only arrival times on this agent's own clock are compared,
+so it holds for agents on other hosts too. The wait runs on the agent's worker thread (never
+a bus thread); when frames stop, each sense waits at most ``pose_wait_s`` until tracking is
+declared lost (``hold_frames``).
 """
 
 from __future__ import annotations
@@ -67,8 +80,11 @@ TELEMETRY_FIELDS: tuple[str, ...] = (
     "innovation_z",
     "innovation_yaw",
     "delivery_s",
+    "pose_wait_s",
 )
 CHANNEL = "mocap"
+#: Bound on the wake-ups of one such wait (poses of the same frame repeated, spurious wakes).
+_POSE_WAIT_WAKES = 64
 _NAN_POSE = np.full(6, np.nan)
 _NAN_POSE.setflags(write=False)
 
@@ -109,6 +125,8 @@ class MocapPoseSource:
         truth: Any | None = None,
         on_lost: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        frame_period_s: float = 0.0,
+        pose_wait_s: float = 0.0,
     ) -> None:
         self.body = bus.check_key_name(body, what="mocap body")
         self.hold_frames = int(hold_frames)
@@ -117,6 +135,18 @@ class MocapPoseSource:
         self._truth = truth
         self._on_lost = on_lost
         self._clock = clock
+        if not (math.isfinite(frame_period_s) and frame_period_s >= 0.0):
+            raise ValueError(f"frame_period_s must be >= 0 [s], got {frame_period_s!r}")
+        if not (math.isfinite(pose_wait_s) and pose_wait_s >= 0.0):
+            raise ValueError(f"pose_wait_s must be >= 0 [s], got {pose_wait_s!r}")
+        #: Frame period of the mocap system [s] (0: unknown; no waiting for a frame's pose).
+        self.frame_period_s = float(frame_period_s)
+        #: Bound on a sense's wait for its tick's frame [s] (0: never waits; module docstring).
+        self.pose_wait_s = float(pose_wait_s) if frame_period_s > 0.0 else 0.0
+        #: Senses that waited for their frame's pose and got it / waited in vain.
+        self.pose_waits = 0
+        self.pose_wait_timeouts = 0
+        self._fresh = threading.Event()  # set by every pose message of the agent's body
         self._latest: tuple[message.BodyPose, float] | None = None  # (message, arrival [s])
         #: Graph neighbours whose poses the controller asks for: agent name -> body.
         self.neighbours: dict[str, str] = {}
@@ -189,6 +219,7 @@ class MocapPoseSource:
             self._count_malformed(self.body, exc)
             return
         self._latest = (decoded, self._clock())
+        self._fresh.set()
         if not decoded.occluded:
             self._first.set()
 
@@ -268,8 +299,36 @@ class MocapPoseSource:
             poses[agent] = None if lost is not None or latest is None else latest[0].pose.copy()
         return poses
 
+    def _await_frame(self) -> float:
+        """Wait, bounded by :attr:`pose_wait_s`, for the pose of the tick's frame when the
+        newest one arrived over half a frame period ago (module docstring). Returns the time
+        waited [s]; runs on the agent's worker thread."""
+        latest = self._latest
+        if latest is None or self.pose_wait_s <= 0.0:
+            return 0.0
+        start = self._clock()
+        if start - latest[1] <= 0.5 * self.frame_period_s:
+            return 0.0  # this frame's pose is in
+        frame, deadline = latest[0].frame, start + self.pose_wait_s
+        for _ in range(_POSE_WAIT_WAKES):
+            self._fresh.clear()
+            newest = self._latest
+            if newest is not None and newest[0].frame != frame:
+                self.pose_waits += 1
+                return self._clock() - start
+            remaining = deadline - self._clock()
+            if remaining <= 0.0:
+                break
+            self._fresh.wait(remaining)
+        self.pose_wait_timeouts += 1
+        return self._clock() - start
+
     def pose(self) -> np.ndarray:
-        """The body's pose ``[x, y, z (m), roll, pitch, yaw (rad)]`` (world frame), or NaN."""
+        """The body's pose ``[x, y, z (m), roll, pitch, yaw (rad)]`` (world frame), or NaN.
+
+        With :attr:`pose_wait_s` > 0 it may first wait, bounded, for the tick's frame (module
+        docstring)."""
+        waited = self._await_frame() if self.lost_reason is None else 0.0
         reason = self.lost_reason or self.lost()
         row = self._row
         if reason is not None:
@@ -300,6 +359,7 @@ class MocapPoseSource:
             qw,
             *latest.innovation.tolist(),
             latest.latency_s(arrived),
+            waited,
         )
         return p.copy()
 

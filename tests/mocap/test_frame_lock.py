@@ -235,6 +235,8 @@ def demo_with(tmp_path: Path, lines: str) -> Path:
         ('tick_lag_ms = "2"', "number"),
         ("tick_lag_ms = true", "number"),
         ("tick_lock = 1", "is not true or false"),
+        ("pose_wait_ms = 10.0", "not under one frame period (10 ms at rate_hz = 100)"),
+        ("pose_wait_ms = -1.0", "out of range; expected pose_wait_ms >= 0"),
     ],
 )
 def test_the_schema_refuses_a_bad_lag(tmp_path: Path, lines: str, reason: str) -> None:
@@ -250,7 +252,18 @@ def test_the_lag_setting_and_its_default(tmp_path: Path) -> None:
     assert experiment.mocap.tick_lock
     experiment, problems = parse_experiment(demo_with(tmp_path, "tick_lock = false"))
     assert not problems and not experiment.mocap.tick_lock
-    assert experiment.mocap.tick_lag_s == pytest.approx(2e-3)  # 100 Hz: the default 2 ms
+    assert experiment.mocap.tick_lag_s == pytest.approx(3e-3)  # 100 Hz: the default 3 ms
     fast = MocapSettings(system="sim", rate_hz=240.0)
-    assert fast.tick_lag_s == pytest.approx(0.25 / 240.0)  # at most a quarter of a frame
+    assert fast.tick_lag_s == pytest.approx(0.3 / 240.0)  # at most 0.3 of a frame period
     assert MocapSettings.from_dict(fast.to_dict()) == fast
+
+
+def test_the_pose_wait_setting_and_its_default(tmp_path: Path) -> None:
+    experiment, problems = parse_experiment(demo_with(tmp_path, "pose_wait_ms = 5.0"))
+    assert not problems, problems
+    assert experiment.mocap.pose_wait_s == pytest.approx(5e-3)
+    experiment, problems = parse_experiment(demo_with(tmp_path, "tick_lag_ms = 2.0"))
+    assert not problems and experiment.mocap.pose_wait_s == 0.0  # the default: no wait
+    unlocked = "pose_wait_ms = 5.0\ntick_lock = false"
+    experiment, problems = parse_experiment(demo_with(tmp_path, unlocked))
+    assert not problems and experiment.mocap.pose_wait_s == 0.0  # only with locked ticks

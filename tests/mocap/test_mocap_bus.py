@@ -56,6 +56,7 @@ class Rig:
         *,
         hold_frames: int,
         neighbours: dict[str, str] | None = None,
+        pose_wait_s: float = 0.0,
     ) -> None:
         self.sim = QtmSimulator(sim)
         self.sim.start()
@@ -74,6 +75,7 @@ class Rig:
         self.source = MocapPoseSource(
             sim.bodies[0], hold_frames=hold_frames, hold_s=settings.hold_s,
             start_timeout_s=10.0, on_lost=self.lost.append,
+            frame_period_s=1.0 / sim.rate_hz, pose_wait_s=pose_wait_s,
         )  # fmt: skip
         self.source.neighbours = dict(neighbours or {})
         self.telemetry = Telemetry()
@@ -189,5 +191,41 @@ def test_a_controller_that_asks_gets_its_neighbours_poses(router: list[str]) -> 
         assert set(rig.source.neighbour_poses()) == {"n2"}  # only the neighbour it was given
         u = model.step(np.zeros(1), np.zeros(1))
         assert u[0] == pytest.approx(0.75, abs=1e-4)
+    finally:
+        rig.close()
+
+
+def test_a_sense_waits_bounded_for_the_pose_of_its_frame(router: list[str]) -> None:
+    """``pose_wait_s``: a sense whose newest pose is over half a frame period old waits for the
+    next frame's pose (and gets it), at most ``pose_wait_s``; with no frame coming it gives up
+    at the bound and uses the newest pose it has."""
+    period, bound = 0.1, 0.08  # 10 Hz frames: a frame's pose is due within the bound
+    rig = Rig(router, SimSettings(bodies=("f1",), rate_hz=10.0), hold_frames=50, pose_wait_s=bound)
+    source = rig.source
+    try:
+        rig.sim.set_truth("f1", np.zeros(6))
+        source.wait_first()
+
+        def newest_is_old() -> bool:
+            latest = source._latest
+            return latest is not None and time.monotonic() - latest[1] > 0.5 * period
+
+        wait_for(newest_is_old, "the newest pose to be over half a frame period old")
+        frame = source._latest[0].frame
+        assert np.all(np.isfinite(source.pose()))
+        assert source._latest[0].frame > frame  # it waited for the next frame's pose
+        assert source.pose_waits == 1 and source.pose_wait_timeouts == 0
+        source.record(0, 0.0)
+        waited = rig.telemetry["mocap"].field("pose_wait_s")[-1]  # that sense's wait [s]
+        assert 0.0 < waited <= bound + 0.05  # bounded (the slack: a loaded machine's wake-up)
+
+        rig.process.stop()  # no more frames: a sense gives up at the bound
+        rig.thread.join(10.0)
+        wait_for(newest_is_old, "the newest pose to be over half a frame period old")
+        began = time.monotonic()
+        assert np.all(np.isfinite(source.pose()))  # within hold_s: the newest pose, held
+        assert time.monotonic() - began >= bound
+        assert source.pose_wait_timeouts == 1
+        assert not rig.lost
     finally:
         rig.close()
