@@ -407,6 +407,10 @@ class RecorderProcess:
                 self._segments.append(new)
                 self._queue.extendleft(reversed(self._sent))
                 self._sent.clear()
+                # No batch goes to the dead process's pipe while the new one starts (outside
+                # the lock, below): a batch written there would sit in _sent, never reach the
+                # new process, and be taken as acknowledged by its first acknowledgement.
+                self._broken = True
                 self.resent_records += resent
                 self._failures.append(
                     f"{what}{at}; continued in {new.name} ({resent} records sent again)"

@@ -312,6 +312,38 @@ def test_a_killed_recorder_is_restarted_into_the_next_segment(
         assert next(iter_messages(segment))[0] == "/experiment"
 
 
+def test_batches_written_while_the_new_recorder_starts_are_not_lost(
+    tmp_path: Path, experiment: Experiment
+) -> None:
+    """A manager keeps writing while its killed recorder is replaced: every batch reaches the
+    new process (a batch handed to the dead process's pipe while the new one started was kept
+    as sent and taken as acknowledged: lost without a word)."""
+    path = tmp_path / "run.mcap"
+    recorder = RecorderProcess(path, experiment, log_time_ns=T0)
+    k = 0
+    try:
+        recorder.wait_ready()
+        for _ in range(10):
+            recorder.write(frames_of_ticks(experiment, range(k, k + 5)), count=20, tick=k)
+            k += 5
+        assert wait_until(lambda: recorder.bytes_written > 0)
+        os.killpg(recorder.process.pid, signal.SIGKILL)
+        # Small batches, one every ~ms, through the restart and beyond (bounded: 20 s).
+        deadline, after = time.monotonic() + 20.0, 0
+        while after < 200 and time.monotonic() < deadline:
+            recorder.write(frames_of_ticks(experiment, range(k, k + 1)), count=4, tick=k)
+            k += 1
+            after += recorder.restarts == 1
+            time.sleep(0.001)  # the pace of a manager's batches, not a synchronisation
+        assert recorder.restarts == 1
+    finally:
+        assert recorder.close() == 0
+    report = recorder.report()
+    assert report.complete and report.lost_records == 0
+    first, second = (leader_ticks(segment) for segment in recorder.segments)
+    assert first + second == list(range(k))  # every tick once, in order
+
+
 def test_a_recorder_that_keeps_dying_is_given_up_and_the_loss_counted(
     tmp_path: Path, experiment: Experiment
 ) -> None:
