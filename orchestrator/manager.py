@@ -100,8 +100,13 @@ SCHEDULE_MOVE_S = 20e-6
 #: Realtime with a frame lock: period of the ``frame_lock`` record while locked [s].
 FRAME_LOCK_REPORT_S = 10.0
 
+#: At the stop, how long an agent's last status (``stopped``, with its final counters) may
+#: still take to arrive after its liveliness token went [s]: the token's end travels as a
+#: declaration, ahead of data, and may overtake the agent's last messages.
+STOP_STATUS_GRACE_S = 0.5
+
 # Event kinds of the ticking thread's queue (rare: not one per message).
-_ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE = range(6)
+_ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE, _STOPPED = range(7)
 _K = struct.Struct("<q")
 
 
@@ -455,7 +460,9 @@ class InstanceManager:
                 self._tick.last_progress = self._clock()
             self.agent_states[name] = state
             self._note_status(name, state, message)
-        if state == "safe":
+        if state == "stopped":
+            self._events.put((_STOPPED, name))
+        elif state == "safe":
             agent_k = message.get("k")
             agent_k = agent_k if isinstance(agent_k, int) else -1
             self._events.put((_SAFE, name, str(message.get("detail", "")), agent_k))
@@ -909,8 +916,8 @@ class InstanceManager:
         """One event while ticking."""
         kind = item[0]
         k = self._tick.base
-        if kind == _COMPLETE:
-            return  # the loop closes the tick
+        if kind in (_COMPLETE, _STOPPED):
+            return  # the loop closes the tick; stopped agents matter only at the stop
         if kind == _GONE:
             reason = "liveliness token lost (killed or hung)"
             process = self._describe_process(item[1]) if self._describe_process else ""
@@ -1037,22 +1044,31 @@ class InstanceManager:
     # -- stopping ----------------------------------------------------------------------------
 
     def _stop_agents(self, k: int) -> None:
-        """Every agent to safe mode and stopped; wait (bounded) for their tokens to go."""
+        """Every agent to safe mode and stopped; wait (bounded) for their tokens to go and for
+        their last status (``stopped``, with the final counters: at most
+        :data:`STOP_STATUS_GRACE_S` after the last token went)."""
         with self._lock:
             self._stopping = True  # safe states from here on are the stop's, not faults
+            stopping = set(self.alive)
+            stopped = {name for name in stopping if self.agent_states.get(name) == "stopped"}
         self._publish_state("stopping", self._stop_reason)
         self._record_event(ORCHESTRATOR, "stopping", k=k, detail=self._stop_reason)
         self._control_pub.put(bus.encode_control(bus.ControlCommand.STOP, reason=self._stop_reason))
-        deadline = self._clock() + self.stop_timeout_s
-        while self.alive:
+        clock = self._clock
+        deadline = clock() + self.stop_timeout_s
+        grace_end = math.inf  # set when the last token went
+        while self.alive or not stopping <= stopped:
             self._flush_records()
-            remaining = deadline - self._clock()
+            if not self.alive and grace_end == math.inf:
+                grace_end = clock() + STOP_STATUS_GRACE_S
+            remaining = (deadline if self.alive else grace_end) - clock()
             if remaining <= 0:
-                logger.warning(
-                    "agents still up %s s after the stop command: %s",
-                    self.stop_timeout_s,
-                    ", ".join(sorted(self.alive)),
-                )
+                if self.alive:
+                    logger.warning(
+                        "agents still up %s s after the stop command: %s",
+                        self.stop_timeout_s,
+                        ", ".join(sorted(self.alive)),
+                    )
                 break
             try:
                 item = self._events.get(timeout=min(remaining, self._flush_period_s * 5))
@@ -1060,6 +1076,8 @@ class InstanceManager:
                 continue
             if item[0] == _GONE:
                 self.alive.discard(item[1])
+            elif item[0] == _STOPPED:
+                stopped.add(item[1])
         self._flush_records()
 
     def _show(self, k: int, start: float, now: float) -> None:
