@@ -646,6 +646,8 @@ class InstanceManager:
             self._ticks.start(t0)  # tick k due at t0 + k dt, or in step with the mocap frames
             t0 = self._due(0)
             if clocked:  # the agents wake themselves at t0 + k * dt from now on
+                with self._lock:  # open tick 0 before an agent can answer it
+                    tick.release(0, t0, t0)
                 self._send_schedule(0, self.experiment.n_ticks - 1, t0, record=True)
             self._wait_until(t0)
         if not self._stop_reason:
@@ -792,6 +794,12 @@ class InstanceManager:
         with self._frame_guard:
             self._ticks.reanchor(now, started)
         t0 = self._due(started + 1) - (started + 1) * self.dt
+        if started + 1 < self.experiment.n_ticks:
+            # Open the resumed tick now: an agent may answer it before this thread's step at
+            # its due time (an answer to a tick not open yet is not counted: it would be late).
+            due = t0 + (started + 1) * self.dt
+            with self._lock:
+                tick.release(started + 1, due, due)
         self._halt_after = None
         self._step_k = started + 1
         self._send_schedule(started + 1, self.experiment.n_ticks - 1, t0, record=True)
