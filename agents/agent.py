@@ -318,7 +318,7 @@ class Agent:
     def _stale_samples(self) -> int:
         """Board answers marked STALE so far (0 for links that do not count them)."""
         board = self.hardware.board if self.hardware is not None else None
-        return int(getattr(getattr(board, "stats", None), "stale_samples", 0) or 0)
+        return _board_count(board, "stale_samples")
 
     def publish_status(self, fields: Mapping[str, Any], *, detail: str = "") -> None:
         """Publish a status message (JSON) with the current tick, state and counters."""
@@ -1022,9 +1022,14 @@ class Agent:
 MANAGER_NAME = "_manager"
 
 
+def _board_count(board: Any, name: str) -> int:
+    """The board link's counter ``name`` so far (``stats.<name>``; 0 for links without it)."""
+    return int(getattr(getattr(board, "stats", None), name, 0) or 0)
+
+
 def _link_retries(board: Any) -> int:
     """Re-sends of board requests so far (0 for links that do not count them)."""
-    return int(getattr(getattr(board, "stats", None), "retries", 0) or 0)
+    return _board_count(board, "retries")
 
 
 def _link_stages(board: Any, exchanged: bool) -> tuple[float, float] | tuple[()]:

@@ -304,6 +304,8 @@ TICK_REALTIME = 0x01
 #: Flag bit of a schedule message (:class:`ScheduleMessage`, sent on the tick key).
 TICK_SCHEDULE = 0x02
 _SCHEDULE_TAIL = struct.Struct("<qdd")
+#: Offset of the flags in a tick or schedule message (after ``k`` and ``t``) [bytes].
+_TICK_FLAGS_AT = struct.calcsize("<qd")
 _REPORT_HEADER = struct.Struct("<ddddHHHH")
 _GATEWAY_STAGES = struct.Struct("<dd")
 
@@ -420,7 +422,7 @@ class ScheduleMessage:
 
 def is_schedule(payload: bytes | bytearray | memoryview) -> bool:
     """Is this message on the tick key a schedule (:func:`encode_schedule`)?"""
-    return len(payload) > 16 and bool(payload[16] & TICK_SCHEDULE)
+    return len(payload) > _TICK_FLAGS_AT and bool(payload[_TICK_FLAGS_AT] & TICK_SCHEDULE)
 
 
 def encode_schedule(message: ScheduleMessage) -> bytes:

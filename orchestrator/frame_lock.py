@@ -77,7 +77,6 @@ class FrameLock:
         self._f0 = 0.0
         self._phase = 0.0  # running minimum of f_n - f0 - (n - n0) P [s]
         self._offset = 0.0  # running minimum of arrival - f_n [s]
-        self._last_n = 0
         self._last_f = 0.0
         self._last_arrival = -math.inf
         self._high_phase = 0
@@ -92,7 +91,7 @@ class FrameLock:
         self._n0, self._f0, self._phase = number, frame_time, 0.0
         self._offset = arrival - frame_time
         self._high_phase = self._high_offset = 0
-        self._last_n, self._last_f, self._last_arrival = number, frame_time, arrival
+        self._last_f, self._last_arrival = frame_time, arrival
 
     def on_frame(self, number: int, frame_time: float, arrival: float) -> None:
         """Frame ``number``, at ``frame_time`` [s, the frame clock], arrived at ``arrival``
@@ -102,7 +101,7 @@ class FrameLock:
             return
         period, half = self.period, 0.5 * self.period
         rise = self.leak * max(0.0, frame_time - self._last_f)
-        self._last_n, self._last_f, self._last_arrival = number, frame_time, arrival
+        self._last_f, self._last_arrival = frame_time, arrival
         residual = frame_time - self._f0 - (number - self._n0) * period
         phase = self._phase + rise
         if residual <= phase:

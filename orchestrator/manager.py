@@ -664,14 +664,15 @@ class InstanceManager:
             now = clock()
             if self._reanchor:  # realtime resume: tick k+1 is due one period from now
                 self._reanchor = False
-                t0 = self._reanchor_clocked(now) if clocked else self._reanchor_free(now)
+                if clocked:
+                    self._reanchor_clocked(now)
+                else:
+                    self._reanchor_free(now)
             if clocked:  # the schedule in force
                 due = self._schedule[2] + self._step_k * dt
             else:
                 due = self._due(tick.k + 1) if realtime else math.inf
-            # self-clocked: a pause takes effect once the tick after it is closed
-            halting = clocked and self._halt_after is not None and tick.base <= self._halt_after
-            stepping = not self._paused or halting
+            stepping = self._clocked_stepping() if clocked else not self._paused
             if clocked and now - self._schedule_sent >= SCHEDULE_REPEAT_S:
                 self._send_schedule(*self._schedule)
             if not stepping:
@@ -696,8 +697,7 @@ class InstanceManager:
                     break
             if realtime:
                 if clocked:
-                    halting = self._halt_after is not None and tick.base <= self._halt_after
-                    if (not self._paused or halting) and clock() >= due:
+                    if self._clocked_stepping() and clock() >= due:
                         self._clocked_step()
                 elif not self._paused and clock() >= due:
                     self._realtime_step(due)
@@ -736,11 +736,16 @@ class InstanceManager:
         if k >= n_ticks:
             self._stop_reason = "completed"
 
-    def _reanchor_free(self, now: float) -> float:
+    def _reanchor_free(self, now: float) -> None:
         """Ticked resume: tick k+1 is due one period from ``now`` (or at the frame then)."""
         with self._frame_guard:
             self._ticks.reanchor(now, self._tick.k)
-        return now - self._tick.k * self.dt
+
+    def _clocked_stepping(self) -> bool:
+        """Self-clocked: does the ticking thread step? Not while paused, except that a pause
+        takes effect once the tick after it is closed."""
+        halt_after = self._halt_after
+        return not self._paused or (halt_after is not None and self._tick.base <= halt_after)
 
     def _clocked_step(self) -> None:
         """Self-clocked: tick ``j = _step_k`` is due now (the agents start it themselves).
@@ -784,9 +789,9 @@ class InstanceManager:
         if tick.base >= n_ticks:
             self._stop_reason = "completed"
 
-    def _reanchor_clocked(self, now: float) -> float:
+    def _reanchor_clocked(self, now: float) -> None:
         """Self-clocked resume: the tick after the last one started is due one period from
-        ``now`` (or at the frame then); returns the new T0 [s] after sending the schedule."""
+        ``now`` (or at the frame then); the new schedule goes out."""
         tick = self._tick
         with self._lock:
             started = min(self._step_k - 1, tick.released)
@@ -803,7 +808,6 @@ class InstanceManager:
         self._halt_after = None
         self._step_k = started + 1
         self._send_schedule(started + 1, self.experiment.n_ticks - 1, t0, record=True)
-        return t0
 
     def _count(self, account: TickAccount, late: list[int]) -> None:
         """Account a closed tick and count it (late or on time)."""
