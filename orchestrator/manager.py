@@ -815,7 +815,7 @@ class InstanceManager:
         for j in late:
             self.summary.late[self.names[j]] += 1
         if late:
-            self.summary.late_ticks += 1
+            self.summary.note_late_tick(account.k)
         else:
             self.summary.ticks += 1
         self._watch_overload(account.k, bool(late))

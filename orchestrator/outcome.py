@@ -163,10 +163,11 @@ def decide(
     if summary.late_ticks:
         planned = max(summary.planned_ticks, 1)
         fraction = summary.late_ticks / planned
+        where = summary.late_range()
         line = (
             f"{summary.late_ticks} of {summary.planned_ticks} ticks late ({fraction:.1%}, "
-            f"max_late_fraction {summary.max_late_fraction:.1%}); late answers: "
-            + ", ".join(f"{name}={count}" for name, count in late.items())
+            f"max_late_fraction {summary.max_late_fraction:.1%}{'; ' + where if where else ''}"
+            "); late answers: " + ", ".join(f"{name}={count}" for name, count in late.items())
         )
         if fraction > summary.max_late_fraction:
             degradations.append(line)

@@ -67,6 +67,9 @@ class RunSummary:
             ``stale_samples``).
         late: late answers per agent (realtime).
         late_ticks: ticks not complete by the next tick's deadline (realtime).
+        first_late_tick, last_late_tick: the first and the last of them (``None``: none), so
+            a reader tells a start-up transient (late ticks only at the start) from an
+            overload that lasts.
         max_late_fraction: late ticks above this fraction of the planned ticks degrade the
             outcome.
         completion_s: per tick, completion time after its scheduled time [s].
@@ -90,12 +93,28 @@ class RunSummary:
     counters: dict[str, dict[str, int | dict[str, int]]] = field(default_factory=dict)
     late: dict[str, int] = field(default_factory=dict)
     late_ticks: int = 0
+    first_late_tick: int | None = None
+    last_late_tick: int | None = None
     max_late_fraction: float = 0.01
     completion_s: list[float] = field(default_factory=list)
     estop_tick: int | None = None
     failed: bool = False
     recording: RecordingReport | None = None
     dt_s: float = 0.0
+
+    def note_late_tick(self, k: int) -> None:
+        """Count tick ``k`` as late (ticks are closed in order)."""
+        self.late_ticks += 1
+        if self.first_late_tick is None:
+            self.first_late_tick = k
+        self.last_late_tick = k
+
+    def late_range(self) -> str:
+        """Where the late ticks were: ``"tick 4"``, ``"ticks 0-2"``, or ``""`` for none."""
+        first, last = self.first_late_tick, self.last_late_tick
+        if first is None or last is None:
+            return ""
+        return f"tick {first}" if first == last else f"ticks {first}-{last}"
 
     @property
     def speed(self) -> float:
@@ -121,7 +140,8 @@ class RunSummary:
             f"experiment {self.experiment!r} ({self.mode}): {self.ticks}/{self.planned_ticks} "
             f"ticks in {self.wall_s:.2f} s wall clock ({self.speed:.1f}x real time); "
             f"stopped: {self.stop_reason}",
-            f"tick completion p50 {_ms(p50)}, p99 {_ms(p99)}; late ticks {self.late_ticks}",
+            f"tick completion p50 {_ms(p50)}, p99 {_ms(p99)}; late ticks {self.late_ticks}"
+            + (f" ({self.late_range()})" if self.late_ticks else ""),
         ]
         return "\n".join(lines)
 

@@ -59,6 +59,21 @@ def test_late_ticks_within_max_late_fraction_are_a_note() -> None:
     assert decide(summary(late={"a": 5}, late_ticks=5, max_late_fraction=0.05)).code == CLEAN
 
 
+def test_the_late_ticks_are_placed_so_a_start_up_transient_shows() -> None:
+    run = summary(late={"a": 3})
+    for k in (0, 1, 2):
+        run.note_late_tick(k)
+    assert (run.late_ticks, run.first_late_tick, run.last_late_tick) == (3, 0, 2)
+    assert "3 of 400 ticks late (0.8%, max_late_fraction 1.0%; ticks 0-2)" in decide(run).text()
+    assert run.text().endswith("late ticks 3 (ticks 0-2)")
+    one = summary(late={"a": 1})
+    one.note_late_tick(250)
+    assert one.late_range() == "tick 250" and "(0.2%, max_late_fraction 1.0%; tick 250)" in (
+        decide(one).text()
+    )
+    assert summary().late_range() == "" and summary().text().endswith("late ticks 0")
+
+
 def test_an_agent_safe_from_its_first_tick_fails_the_run() -> None:
     result = decide(summary(safe={"leader": AgentEvent(0, "has no pose_source")}))
     assert result.code == FAILED

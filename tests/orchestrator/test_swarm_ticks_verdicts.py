@@ -1,0 +1,65 @@
+"""The swarm benchmark's verdicts and JSON line from given figures (no run): pure functions."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import numpy as np
+import pytest
+from hilswarm.orchestrator.run_summary import RunSummary
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def swarm_ticks() -> Iterator[ModuleType]:
+    """The benchmark script as a module."""
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import swarm_ticks
+
+        yield swarm_ticks
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+
+
+def runtime(swarm_ticks: ModuleType, late_ks: list[int], completion_s: float = 0.005) -> Any:
+    summary = RunSummary(experiment="bench", mode="realtime", planned_ticks=400, dt_s=0.01,
+                         stop_reason="completed", ticks=400 - len(late_ks))  # fmt: skip
+    summary.completion_s = [completion_s] * summary.ticks
+    for k in late_ks:
+        summary.note_late_tick(k)
+    return swarm_ticks.Result("frisbee", "realtime", 32, 100.0, summary, 0.002, 0.001, 0.0003,
+                              1.2, 0.5)  # fmt: skip
+
+
+def bare(swarm_ticks: ModuleType) -> Any:
+    return swarm_ticks.BareResult(32, 100.0, "realtime", 400, 0, np.full(400, 0.004), 4.0)
+
+
+def verdict_32(swarm_ticks: ModuleType, result: Any) -> str:
+    lines = swarm_ticks.verdicts([result], {("realtime", 32, 100.0): bare(swarm_ticks)})
+    return next(line for line in lines if "32 agents at 100 Hz" in line)
+
+
+def test_late_ticks_under_a_finite_p99_are_judged_not_a_crash(swarm_ticks: ModuleType) -> None:
+    """Two late ticks of 400 leave p99 finite (< 10 ms): the 32-agent rule (0 late) misses,
+    and the verdict says that both were at the start."""
+    line = verdict_32(swarm_ticks, runtime(swarm_ticks, [0, 1]))
+    assert "MISSED" in line and "late 0.50 % vs bare 0.00 %" in line
+    assert "every late tick at the start (ticks 0-1)" in line
+    assert "MET" in verdict_32(swarm_ticks, runtime(swarm_ticks, []))
+    later = verdict_32(swarm_ticks, runtime(swarm_ticks, [3, 250]))
+    assert "MISSED" in later and "at the start" not in later
+
+
+def test_the_json_line_names_the_last_late_tick(swarm_ticks: ModuleType) -> None:
+    line = json.loads(swarm_ticks.result_json(runtime(swarm_ticks, [0, 2])))
+    assert line["last_late_tick"] == 2 and line["late_fraction"] == 0.005
+    assert json.loads(swarm_ticks.result_json(runtime(swarm_ticks, [])))["last_late_tick"] is None
+    assert json.loads(swarm_ticks.bare_json(bare(swarm_ticks), 0.5))["last_late_tick"] is None
