@@ -63,3 +63,18 @@ def test_the_json_line_names_the_last_late_tick(swarm_ticks: ModuleType) -> None
     assert line["last_late_tick"] == 2 and line["late_fraction"] == 0.005
     assert json.loads(swarm_ticks.result_json(runtime(swarm_ticks, [])))["last_late_tick"] is None
     assert json.loads(swarm_ticks.bare_json(bare(swarm_ticks), 0.5))["last_late_tick"] is None
+
+
+def test_lockstep_start_up_and_cpu_lines(swarm_ticks: ModuleType) -> None:
+    summary = RunSummary(experiment="bench", mode="lockstep", planned_ticks=3000, dt_s=0.01,
+                         stop_reason="completed", ticks=3000, wall_s=6.0)  # fmt: skip
+    lockstep = swarm_ticks.Result("frisbee", "lockstep", 8, 100.0, summary, 0.0007, 0.0002,
+                                  0.0003, 0.4, 0.5)  # fmt: skip
+    bare_lockstep = swarm_ticks.BareResult(8, 100.0, "lockstep", 3000, 0, np.zeros(0), 2.5)
+    baselines = {("realtime", 32, 100.0): bare(swarm_ticks), ("lockstep", 8, 100.0): bare_lockstep}
+    lines = swarm_ticks.verdicts([runtime(swarm_ticks, []), lockstep], baselines)
+    text = "\n".join(lines)
+    assert "lockstep 8 agents at 100 Hz >= 10x and >= 75 % of the bare bus: MISSED" in text
+    assert "(5.0x vs bare 12.0x, ratio 0.42, load 0.50)" in text
+    assert "32 agents ready < 2 s: MET (1.20 s)" in text
+    assert "CPU per tick, lockstep 8 @ 100 Hz: manager 0.700 ms" in text
