@@ -110,11 +110,12 @@ class RunSummary:
         self.last_late_tick = k
 
     def late_range(self) -> str:
-        """Where the late ticks were: ``"tick 4"``, ``"ticks 0-2"``, or ``""`` for none."""
+        """Where the late ticks were: ``"at tick 4"``, ``"between ticks 0 and 2"`` (the first and
+        the last; not every tick between was late), or ``""`` for none."""
         first, last = self.first_late_tick, self.last_late_tick
         if first is None or last is None:
             return ""
-        return f"tick {first}" if first == last else f"ticks {first}-{last}"
+        return f"at tick {first}" if first == last else f"between ticks {first} and {last}"
 
     @property
     def speed(self) -> float:

@@ -149,7 +149,8 @@ def test_self_clocked_ticks_without_a_slow_neighbours_output_are_recorded(
     b_late = {m["k"] + 1 for m in ticks if "b" in m["late"]}
     assert set(noted["b"]) <= a_ticks and len(set(noted["b"]) & b_late) > 10
     late_ks = [m["k"] for m in ticks if m["late"]]  # the outcome places the late ticks
-    assert f"; ticks {late_ks[0]}-{late_ks[-1]}); late answers:" in run.output(), run.output()
+    where = f"; between ticks {late_ks[0]} and {late_ks[-1]}); late answers:"
+    assert where in run.output(), run.output()
 
 
 def test_self_clocked_pause_ends_the_schedule_and_resume_re_anchors_it(

@@ -64,11 +64,12 @@ def test_the_late_ticks_are_placed_so_a_start_up_transient_shows() -> None:
     for k in (0, 1, 2):
         run.note_late_tick(k)
     assert (run.late_ticks, run.first_late_tick, run.last_late_tick) == (3, 0, 2)
-    assert "3 of 400 ticks late (0.8%, max_late_fraction 1.0%; ticks 0-2)" in decide(run).text()
-    assert run.text().endswith("late ticks 3 (ticks 0-2)")
+    line = "3 of 400 ticks late (0.8%, max_late_fraction 1.0%; between ticks 0 and 2)"
+    assert line in decide(run).text()
+    assert run.text().endswith("late ticks 3 (between ticks 0 and 2)")
     one = summary(late={"a": 1})
     one.note_late_tick(250)
-    assert one.late_range() == "tick 250" and "(0.2%, max_late_fraction 1.0%; tick 250)" in (
+    assert one.late_range() == "at tick 250" and "(0.2%, max_late_fraction 1.0%; at tick 250)" in (
         decide(one).text()
     )
     assert summary().late_range() == "" and summary().text().endswith("late ticks 0")

@@ -52,7 +52,7 @@ def test_late_ticks_under_a_finite_p99_are_judged_not_a_crash(swarm_ticks: Modul
     and the verdict says that both were at the start."""
     line = verdict_32(swarm_ticks, runtime(swarm_ticks, [0, 1]))
     assert "MISSED" in line and "late 0.50 % vs bare 0.00 %" in line
-    assert "every late tick at the start (ticks 0-1)" in line
+    assert "every late tick at the start (between ticks 0 and 1)" in line
     assert "MET" in verdict_32(swarm_ticks, runtime(swarm_ticks, []))
     later = verdict_32(swarm_ticks, runtime(swarm_ticks, [3, 250]))
     assert "MISSED" in later and "at the start" not in later
