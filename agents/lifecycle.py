@@ -11,7 +11,8 @@
 * ``starting``: the process is up, nothing opened yet.
 * ``connected``: the bus session is open.
 * ``configured``: vehicle built, board connected, controller ready.
-* ``armed``: publishers/subscribers declared, liveliness token up; waiting for tick 0.
+* ``armed``: publishers/subscribers declared, liveliness token up; waiting for the run to
+  start: the first tick message, or (self-clocked) the schedule, which comes before tick 0.
 * ``running``: answering ticks. ``paused``: no ticks, last input held.
 * ``degraded``: the board link failed (stalled or unplugged board); the agent is reconnecting,
   its ticks are missed (reported as skipped) and its bus session stays up. Back to

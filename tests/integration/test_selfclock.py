@@ -116,6 +116,10 @@ def test_self_clocked_run_completes_and_accounts_every_tick(
         assert ks == sorted(set(ks)) and ks[-1] == 49, (name, ks)
         last = statuses(recording, name)[-1]
         assert last["state"] == "stopped" and "dropped" not in last, last
+        # Each agent left ``armed`` when the schedule came, in the lead before tick 0 (the
+        # transition's cost is off tick 0), not on its first tick.
+        started = [m for m in statuses(recording, name) if m["state"] == "running"]
+        assert [m["detail"] for m in started] == ["schedule received"], started
         # The record says which ticks ran without the neighbour's output: exactly the ticks
         # the toy controller counted (x_hat[0]: ticks with a neighbour's output missing).
         noted = noted_missing(recording, name)
