@@ -716,7 +716,7 @@ class Agent:
             while True:
                 with lock:
                     due = engine.next_due()  # self-clocked: the next tick's deadline
-                if due is not None and self.lifecycle.armed.is_active:
+                if due is not None and engine.k < 0 and self.lifecycle.armed.is_active:
                     # Self-clocked: the schedule is in, tick 0 is due in the lead the manager
                     # gives. Leave ``armed`` now, not on tick 0: the transition and its status
                     # message cost ~0.6 ms of CPU in every agent at once (docs/running.md).
@@ -769,7 +769,9 @@ class Agent:
 
     def _run_tick(self, tick: Tick) -> None:
         """Tick ``k`` with its inputs in: compute, apply, sense, publish (on the worker)."""
-        if self.lifecycle.armed.is_active:  # ticked: the first tick message starts the run
+        # Ticked: the first tick starts the run (by the state's id: every tick asks, and
+        # ``armed.is_active`` costs ~0.9 µs to the id's 0.05 µs).
+        if self.lifecycle.state_id == "armed":
             self._transition("start", "")
         k, t = tick.k, tick.t
         y_payload, report, u_new, x_hat = self.tick_work(
