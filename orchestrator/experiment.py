@@ -778,24 +778,18 @@ def mocap_settings(
         )
     if section.sim is not None and section.system != "sim":
         problems.append(Problem(file, key_path(where, ("sim",)), 'only for system = "sim"'))
-    if section.tick_lag_ms is not None and section.tick_lag_ms >= 1000.0 / section.rate_hz:
-        problems.append(
-            Problem(
-                file,
-                key_path(where, ("tick_lag_ms",)),
-                f"{section.tick_lag_ms:g} ms is not under one frame period "
-                f"({1000.0 / section.rate_hz:.3g} ms at rate_hz = {section.rate_hz:g})",
+    period_ms = 1000.0 / section.rate_hz
+    for key in ("tick_lag_ms", "pose_wait_ms"):  # both must be under one frame period
+        value = getattr(section, key)
+        if value is not None and value >= period_ms:
+            problems.append(
+                Problem(
+                    file,
+                    key_path(where, (key,)),
+                    f"{value:g} ms is not under one frame period "
+                    f"({period_ms:.3g} ms at rate_hz = {section.rate_hz:g})",
+                )
             )
-        )
-    if section.pose_wait_ms is not None and section.pose_wait_ms >= 1000.0 / section.rate_hz:
-        problems.append(
-            Problem(
-                file,
-                key_path(where, ("pose_wait_ms",)),
-                f"{section.pose_wait_ms:g} ms is not under one frame period "
-                f"({1000.0 / section.rate_hz:.3g} ms at rate_hz = {section.rate_hz:g})",
-            )
-        )
     if problems:
         return None, problems
     from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap files only
