@@ -9,12 +9,14 @@ loaded, log time of ``/experiment``); everything after it is the manager's recor
 output, then records every batch. JSON encoding and MCAP chunking happen here, on the other
 core, never under the manager's GIL.
 
-Recording is not on the real-time path. The process lowers its own CPU priority
-(``os.nice(RECORDER_NICE)``, +10), so the agents and the manager win the CPU when the cores are
-busy and the recorder catches up when they idle. The manager never waits for it:
-:meth:`RecorderProcess.write` queues the batch and returns, a thread moves the queue into the
-pipe. Only when :data:`DEFAULT_QUEUE_BYTES` of records wait does ``write`` wait too (logged
-once): records are never dropped while a recorder lives.
+Recording is not on the real-time path. The process lowers its own CPU priority by
+:data:`RECORDER_NICE` (+10), its niceness and its session's autogroup's
+(:func:`~hilswarm.orchestrator.cpu_priority.lower_own_priority`: with autogroup scheduling a
+niceness alone does not count against the agents, each in a session of its own), so the agents
+and the manager win the CPU when the cores are busy and the recorder catches up when they idle.
+The manager never waits for it: :meth:`RecorderProcess.write` queues the batch and returns, a
+thread moves the queue into the pipe. Only when :data:`DEFAULT_QUEUE_BYTES` of records wait
+does ``write`` wait too (logged once): records are never dropped while a recorder lives.
 
 Nothing is lost when the recorder dies. The process finishes its MCAP chunk at batch
 boundaries (at least every :data:`ACK_PERIOD_S`) and then *acknowledges* the last batch it
@@ -65,6 +67,7 @@ from typing import IO, Any
 
 from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION
+from hilswarm.orchestrator.cpu_priority import PriorityError, lower_own_priority
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.record_stream import FrameReader, FrameRecorder
 from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
@@ -79,7 +82,8 @@ PIPE_SIZE = 1 << 20
 #: Records the manager keeps in memory while the recorder lags behind [bytes]: some 50 s of
 #: 32 agents at 100 Hz. Beyond it :meth:`RecorderProcess.write` waits (nothing is dropped).
 DEFAULT_QUEUE_BYTES = 32 << 20
-#: Niceness the recorder process adds to its own (``os.nice``): recording is not on the
+#: Niceness the recorder process adds to its own and sets on its session's autogroup
+#: (:func:`~hilswarm.orchestrator.cpu_priority.lower_own_priority`): recording is not on the
 #: real-time path, so the agents and the manager win the CPU when the cores are busy.
 RECORDER_NICE = 10
 #: Bound on waiting for the process to be ready (file created, vehicles described) [s].
@@ -837,8 +841,8 @@ def _main() -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Not on the real-time path: let the agents and the manager have the CPU first.
     try:
-        os.nice(RECORDER_NICE)
-    except OSError as exc:
+        lower_own_priority(RECORDER_NICE)  # its session's autogroup too: it leads its session
+    except PriorityError as exc:
         logger.warning("could not lower the recorder's CPU priority: %s", exc)
     out = sys.stdout.buffer
     try:

@@ -17,6 +17,7 @@ import pytest
 from hilswarm.agents import bus
 from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import iter_messages
+from hilswarm.orchestrator.cpu_priority import autogroup_niceness
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
 from hilswarm.orchestrator.record_stream import (
     FrameReader,
@@ -196,6 +197,9 @@ def test_recorder_process_lowers_its_priority(tmp_path: Path, experiment: Experi
         recorder.wait_ready()
         niceness = os.getpriority(os.PRIO_PROCESS, recorder.process.pid)
         assert niceness == min(19, os.getpriority(os.PRIO_PROCESS, 0) + RECORDER_NICE)
+        # Its session's autogroup too (the recorder leads a session of its own): else the
+        # niceness would not count against the agents, each in a session of its own.
+        assert autogroup_niceness(recorder.process.pid) in (None, niceness)
     finally:
         assert recorder.close() == 0
 
