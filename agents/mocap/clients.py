@@ -7,9 +7,13 @@
   quiet one). ``qtm-rt`` gives all three, reports the disconnect, and is what the built-in
   simulator (:mod:`.qtm_sim`) is tested against end to end.
 * ``vicon``, ``optitrack``, ``vrpn`` — ``motioncapture`` (the Python bindings of
-  libmotioncapture: Vicon DataStream SDK, NatNet, VRPN). It gives names, positions [m] and
-  quaternions; frames are timed on arrival, and a server that stops sending is detected by
-  silence (:data:`SILENCE_FRAMES` frame periods).
+  libmotioncapture: Vicon DataStream SDK, NatNet, VRPN), run in a worker process
+  (:mod:`.mc_worker`: the bindings hold the GIL while they wait, and an OptiTrack connect with
+  no server never returns). It gives names, positions [m] and quaternions; frames are timed on
+  arrival; connecting is bounded (:data:`DEFAULT_TIMEOUT_S`), and a server that stops sending
+  is detected by silence (:data:`SILENCE_FRAMES` frame periods). VRPN's client reports no
+  connection state and paces empty frames by itself, so for VRPN only frames with a body count:
+  no body within the bound is a connection error, no body for the silence period a lost server.
 
 :meth:`MocapClient.run` blocks, calling ``on_frame`` with each :class:`Frame` in the
 *system's* convention (mapped into the world frame by the caller, :mod:`.frames`), until
@@ -21,6 +25,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -31,6 +37,7 @@ from xml.etree import ElementTree
 import numpy as np
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.mocap.frames import quaternion_to_rotation
+from hilswarm.agents.mocap.mc_worker import RecordError, RecordReader
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +47,10 @@ QTM_PORT = 22223
 SILENCE_FRAMES = 50
 #: Bound on connecting and on each command [s].
 DEFAULT_TIMEOUT_S = 5.0
+#: How often a waiting client looks at its stop flag [s].
+_POLL_S = 0.05
+#: Frames read past at most at once when a client has fallen behind.
+_MAX_BACKLOG = 1000
 
 
 class MocapConnectionError(HilswarmError, ConnectionError):
@@ -227,7 +238,8 @@ class MotionCaptureClient:
         system: ``"vicon"``, ``"optitrack"`` or ``"vrpn"`` (libmotioncapture's type names).
         host: the server's address.
         rate_hz: the system's frame rate [Hz] (for the silence watchdog).
-        clock: monotonic clock [s] for arrival times.
+        clock: monotonic clock [s] for the deadlines.
+        connect_timeout_s: bound on connecting (VRPN: on the first body) [s].
     """
 
     def __init__(
@@ -237,9 +249,11 @@ class MotionCaptureClient:
         *,
         rate_hz: float = 100.0,
         clock: Callable[[], float] = time.monotonic,
+        connect_timeout_s: float = DEFAULT_TIMEOUT_S,
     ) -> None:
         self.system, self.host = system, host
         self.rate_hz: float | None = rate_hz
+        self.connect_timeout_s = connect_timeout_s
         self.bodies: tuple[str, ...] = ()
         self._clock = clock
         self._stop = threading.Event()
@@ -249,68 +263,107 @@ class MotionCaptureClient:
         self._stop.set()
 
     def run(self, on_frame: Callable[[Frame], None], on_ready: Callable[[], None]) -> None:
-        """Connect and stream; ``waitForNextFrame`` runs on a daemon thread (it has no timeout)."""
+        """Connect and stream, the library in a worker process (:mod:`.mc_worker`: it holds the
+        GIL while it waits); every wait here has a deadline.
+
+        Raises:
+            MocapConnectionError: no connection within :attr:`connect_timeout_s` (for VRPN: no
+                body, as VRPN reports no connection state), or the library refused.
+            MocapServerLost: the worker failed, or no frame (VRPN: no frame with a body) came
+                for :data:`SILENCE_FRAMES` frame periods.
+        """
+        worker = subprocess.Popen(
+            [sys.executable, "-m", "hilswarm.agents.mocap.mc_worker", self.system, self.host],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, start_new_session=True,
+        )  # fmt: skip
         try:
-            import motioncapture  # noqa: PLC0415 - only these systems need it
-        except ImportError as exc:
-            raise MocapConnectionError(f"the motioncapture package is missing: {exc}") from exc
+            self._stream(RecordReader(worker.stdout.fileno()), on_frame, on_ready)  # type: ignore[union-attr]
+        finally:
+            worker.kill()  # it may be inside the library, holding its own GIL
+            worker.wait(DEFAULT_TIMEOUT_S)
+            if worker.stdout is not None:
+                worker.stdout.close()
+
+    def _next(self, reader: RecordReader, timeout_s: float) -> tuple[Any, ...] | None:
         try:
-            mc = motioncapture.connect(self.system, {"hostname": self.host})
-        except RuntimeError as exc:
+            record = reader.read(timeout_s)
+        except (EOFError, RecordError) as exc:
+            raise MocapServerLost(f"{self.system} client at {self.host} failed: {exc}") from exc
+        if record is not None and record[0] == "error":
+            raise MocapConnectionError(str(record[1]))
+        return record
+
+    def _stream(
+        self, reader: RecordReader, on_frame: Callable[[Frame], None], on_ready: Callable[[], None]
+    ) -> None:
+        where = f"{self.system} at {self.host}"
+        deadline = self._clock() + self.connect_timeout_s
+        try:
+            connected = False
+            while not connected and self._clock() < deadline and not self._stop.is_set():
+                record = self._next(reader, min(_POLL_S, max(0.0, deadline - self._clock())))
+                connected = record is not None and record[0] == "ready"
+        except MocapServerLost as exc:
+            raise MocapConnectionError(f"cannot connect to {where}: {exc}") from exc
+        if self._stop.is_set():
+            return
+        if not connected:
             raise MocapConnectionError(
-                f"cannot connect to {self.system} at {self.host}: {exc}"
-            ) from exc
-        frames: list[Frame] = []
-        arrived = threading.Condition()
-        failure: list[str] = []
-
-        def pump() -> None:
-            number = 0
-            try:
-                while not self._stop.is_set():
-                    mc.waitForNextFrame()
-                    received = self._clock()
-                    number += 1
-                    bodies: dict[str, tuple[np.ndarray, np.ndarray] | None] = {}
-                    for name, body in mc.rigidBodies.items():
-                        q = body.rotation
-                        bodies[name] = (
-                            np.asarray(body.position, dtype=np.float64),
-                            quaternion_to_rotation(q.w, q.x, q.y, q.z),
-                        )
-                    with arrived:
-                        frames.append(Frame(number, received, received, bodies))
-                        arrived.notify()
-            except RuntimeError as exc:
-                with arrived:
-                    failure.append(str(exc))
-                    arrived.notify()
-
-        threading.Thread(target=pump, name=f"{self.system}-frames", daemon=True).start()
-        silence_s = SILENCE_FRAMES / (self.rate_hz or 100.0)
-        ready = False
-        while not self._stop.is_set():
-            with arrived:
-                if not frames and not failure:
-                    arrived.wait(silence_s)
-                batch, frames[:] = list(frames), []
-                failed = list(failure)
-            if failed:
-                raise MocapServerLost(f"{self.system} server at {self.host} lost: {failed[0]}")
-            if not batch:
-                raise MocapServerLost(
-                    f"{self.system} server at {self.host} silent for {silence_s:.2f} s"
-                )
-            newest = batch[-1]  # a backlog is dropped (counted): the newest frame matters
-            self.bodies = tuple(sorted(set(self.bodies) | set(newest.bodies)))
-            on_frame(
-                Frame(
-                    newest.number, newest.time_s, newest.received_s, newest.bodies, len(batch) - 1
-                )
+                f"no {self.system} server answered at {self.host} within "
+                f"{self.connect_timeout_s:g} s"
             )
+        # VRPN's client paces empty frames itself, server or not: only a body proves a server.
+        needs_body = self.system == "vrpn"
+        silence_s = SILENCE_FRAMES / (self.rate_hz or 100.0)
+        last_heard, number, ready = self._clock(), 0, False
+        deadline = last_heard + self.connect_timeout_s  # for the first frame
+        if needs_body:
+            first = (
+                f"no body from {where} within {self.connect_timeout_s:g} s (VRPN reports no "
+                "connection state: the server is unreachable or tracks no body)"
+            )
+        else:
+            first = f"{where} connected but sent no frame within {self.connect_timeout_s:g} s"
+
+        def usable(record: tuple[Any, ...] | None) -> bool:
+            if record is None or record[0] != "frame":
+                return False
+            return bool(record[2]) or not needs_body
+
+        while not self._stop.is_set():
+            record = self._next(reader, _POLL_S)
+            now = self._clock()
+            if not usable(record):
+                if not ready and now > deadline:
+                    raise MocapConnectionError(first)
+                if ready and now - last_heard > silence_s:
+                    raise MocapServerLost(f"{self.system} server at {self.host} silent for "
+                                          f"{now - last_heard:.2f} s")  # fmt: skip
+                continue
+            skipped, failure = 0, None  # a backlog is dropped (counted): the newest frame matters
+            for _ in range(_MAX_BACKLOG):
+                try:
+                    newer = self._next(reader, 0.0)
+                except (MocapConnectionError, MocapServerLost) as exc:
+                    failure = exc  # raised once the frames before it are given
+                    break
+                if newer is None:
+                    break
+                if usable(newer):
+                    record, skipped = newer, skipped + 1
+            _, received, listed = record  # type: ignore[misc]
+            last_heard, number = now, number + 1 + skipped
+            bodies: dict[str, tuple[np.ndarray, np.ndarray] | None] = {
+                name: (np.asarray(p, dtype=np.float64), quaternion_to_rotation(*q))
+                for name, p, q in listed
+            }
+            self.bodies = tuple(sorted(set(self.bodies) | set(bodies)))
+            on_frame(Frame(number, received, received, bodies, skipped))
             if not ready:
                 ready = True
                 on_ready()
+            if failure is not None:
+                raise failure
 
 
 def make_client(system: str, host: str, port: int | None, rate_hz: float) -> MocapClient:

@@ -181,7 +181,11 @@ def test_a_full_disk_with_policy_continue_runs_to_the_end_unrecorded(tmp_path: P
     disk, keep = tmp_path / "disk", tmp_path / "keep"
     command = " ".join([*CLI, "run", str(experiment), "--no-check", "--out",
                         f"{disk}/run.mcap"])  # fmt: skip
-    code, output = in_small_tmpfs("256k", disk, command, keep)
+    # 1 MiB: ~1500 ticks, over half a second of this lockstep run, so the disk fills after the
+    # recorder's first acknowledgements (ACK_PERIOD_S apart); 256k filled at ~390 ticks, at
+    # about the first one's time, and a run whose disk fills before any acknowledgement rightly
+    # reports every tick as possibly unrecorded
+    code, output = in_small_tmpfs("1m", disk, command, keep)
     assert code == 3, output
     assert "Traceback" not in output, output
     assert "outcome: degraded (exit status 3)" in output, output
