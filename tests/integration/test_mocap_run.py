@@ -266,3 +266,35 @@ def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
         window = (since_frame >= lag_ms * 1e-3 - 1e-3) & (since_frame < lag_ms * 1e-3 + 3e-3)
         assert np.mean(window) > 0.6, (agent, np.percentile(since_frame, [10, 50, 90]))
         assert np.median(latency) < FRAME_S, agent  # mostly the newest frame's pose
+
+
+def test_a_run_with_poses_from_a_vrpn_server_through_the_real_client(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    """``system = "vrpn"``: the mocap process's ``motioncapture`` client (in its worker process)
+    against the protocol-level VRPN server on loopback; the robots stand still in its view."""
+    pytest.importorskip("motioncapture")
+    from hilswarm.agents.mocap.vrpn_sim import VrpnTrackerServer
+
+    yaw = 0.5
+    quat = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    poses = {f"frisbee{i}": ((0.5 * i, -0.25 * i, 0.0), quat) for i in (1, 2, 3)}
+    with VrpnTrackerServer(list(poses), lambda: poses, rate_hz=100.0) as server:
+        sim_section = DEMO.read_text().split("[mocap.sim]", 1)[1].split("\n\n", 1)[0]
+        path = variant(
+            tmp_path,
+            **{
+                'system = "sim"': f'system = "vrpn"\nhost = "127.0.0.1"\nport = {server.port}',
+                "[mocap.sim]" + sim_section: "",
+            },
+        )
+        run = RunProcess(tmp_path, path, "--duration", "2")
+        runs.append(run)
+        assert run.wait(RUN_TIMEOUT_S) == 0, run.output()
+    recording = read_recording(run.out)
+    for agent, body in (("leader", "frisbee1"), ("f1", "frisbee2"), ("f2", "frisbee3")):
+        y = outputs(recording, agent)  # x y [m, world], psi [rad]
+        assert len(y) == 40, agent
+        x, y_m = poses[body][0][:2]
+        np.testing.assert_allclose(y[-1], (x, y_m, yaw), atol=0.05)  # the filter's estimate
+        assert recording[f"/{agent}/pose"], agent
