@@ -274,8 +274,14 @@ class MotionCaptureClient:
         """
         worker = subprocess.Popen(
             [sys.executable, "-m", "hilswarm.agents.mocap.mc_worker", self.system, self.host],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, start_new_session=True,
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+            start_new_session=True,
         )  # fmt: skip
+        # The library's own chatter ("tracker: cf1", version notes) goes to the log, not the
+        # user's terminal; the thread ends when the worker's stderr closes.
+        threading.Thread(
+            target=_log_lines, args=(worker.stderr, f"{self.system} client"), daemon=True
+        ).start()
         try:
             self._stream(RecordReader(worker.stdout.fileno()), on_frame, on_ready)  # type: ignore[union-attr]
         finally:
@@ -364,6 +370,13 @@ class MotionCaptureClient:
                 on_ready()
             if failure is not None:
                 raise failure
+
+
+def _log_lines(stream: Any, what: str) -> None:
+    """Log each line of ``stream`` (a worker's stderr) at INFO until it closes."""
+    with stream:
+        for raw in iter(stream.readline, b""):
+            logger.info("%s: %s", what, raw.decode(errors="replace").rstrip())
 
 
 def make_client(system: str, host: str, port: int | None, rate_hz: float) -> MocapClient:
