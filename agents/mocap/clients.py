@@ -290,12 +290,18 @@ class MotionCaptureClient:
             if worker.stdout is not None:
                 worker.stdout.close()
 
-    def _next(self, reader: RecordReader, timeout_s: float) -> tuple[Any, ...] | None:
+    def _next(
+        self, reader: RecordReader, timeout_s: float, *, streaming: bool = False
+    ) -> tuple[Any, ...] | None:
+        """The worker's next record; its error record raises — a connection error before the
+        stream began, a lost server (the library failed while waiting for a frame) after."""
         try:
             record = reader.read(timeout_s)
         except (EOFError, RecordError) as exc:
             raise MocapServerLost(f"{self.system} client at {self.host} failed: {exc}") from exc
         if record is not None and record[0] == "error":
+            if streaming:
+                raise MocapServerLost(f"{self.system} server at {self.host} lost: {record[1]}")
             raise MocapConnectionError(str(record[1]))
         return record
 
@@ -337,7 +343,7 @@ class MotionCaptureClient:
             return bool(record[2]) or not needs_body
 
         while not self._stop.is_set():
-            record = self._next(reader, _POLL_S)
+            record = self._next(reader, _POLL_S, streaming=True)
             now = self._clock()
             if not usable(record):
                 if not ready and now > deadline:
@@ -349,8 +355,8 @@ class MotionCaptureClient:
             skipped, failure = 0, None  # a backlog is dropped (counted): the newest frame matters
             for _ in range(_MAX_BACKLOG):
                 try:
-                    newer = self._next(reader, 0.0)
-                except (MocapConnectionError, MocapServerLost) as exc:
+                    newer = self._next(reader, 0.0, streaming=True)
+                except MocapServerLost as exc:
                     failure = exc  # raised once the frames before it are given
                     break
                 if newer is None:
