@@ -9,8 +9,9 @@ wakes). In the mocap process that would freeze its bus callbacks and its status 
 and kills it when it stops or gives up.
 
 ``python -m hilswarm.agents.mocap.mc_worker SYSTEM HOSTNAME`` writes records on its standard
-output, each a 4-byte little-endian length and then a pickled tuple (:func:`encode`; only the
-process that started this one reads them):
+output (the library's own prints go to its standard error instead), each a 4-byte
+little-endian length and then a pickled tuple (:func:`encode`; only the process that started
+this one reads them):
 
 * ``("ready",)`` once connected;
 * ``("frame", received_s, bodies)`` per frame: the arrival time [s, CLOCK_MONOTONIC, the
@@ -106,7 +107,12 @@ def _write(out: Any, record: tuple[Any, ...]) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Connect ``SYSTEM`` at ``HOSTNAME`` and stream records until killed (module docstring)."""
     args = sys.argv[1:] if argv is None else argv
-    out = sys.stdout.buffer
+    # The records get the standard output to themselves: the library prints on it too (VRPN's
+    # "tracker: cf1" and warnings, measured in the middle of a stream), so its file descriptor
+    # 1 becomes a copy of the standard error (which the parent logs).
+    sys.stdout.flush()
+    out = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
     if len(args) != 2:
         _write(out, ("error", "usage: mc_worker SYSTEM HOSTNAME"))
         return 2

@@ -177,3 +177,47 @@ def test_a_worker_that_dies_before_connecting_is_a_connection_error() -> None:
     error, frames = stream(client)
     assert isinstance(error, MocapConnectionError), error
     assert "cannot connect to vicon at 127.0.0.1" in str(error) and frames == []
+
+
+FAKE_LIBRARY = '''
+"""A stand-in for libmotioncapture that prints on the C standard output, as VRPN does."""
+import os, time
+
+class _Q:
+    w, x, y, z = 1.0, 0.0, 0.0, 0.0
+
+class _Body:
+    position = (1.0, 2.0, 3.0)
+    rotation = _Q()
+
+class _Mc:
+    rigidBodies = {"cf1": _Body()}
+    def waitForNextFrame(self):
+        os.write(1, b"VRPN Warning: chatter on fd 1 in the middle of the stream\\n")
+        time.sleep(0.01)
+
+def connect(system, options):
+    os.write(1, b"tracker: cf1\\n")
+    return _Mc()
+'''
+
+
+def test_the_librarys_own_prints_never_reach_the_record_stream(tmp_path) -> None:
+    # VRPN prints ("tracker: cf1", warnings) on the process's standard output; measured in a
+    # loaded run, its "VRPN..." text landed in the middle of the record stream.
+    (tmp_path / "motioncapture.py").write_text(FAKE_LIBRARY)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "hilswarm.agents.mocap.mc_worker", "vrpn", "127.0.0.1"],
+        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )  # fmt: skip
+    try:
+        reader = RecordReader(worker.stdout.fileno())  # type: ignore[union-attr]
+        records = [reader.read(10.0) for _ in range(20)]
+    finally:
+        worker.kill()
+        _, err = worker.communicate(timeout=10)
+    assert records[0] == ("ready",)
+    assert all(r is not None and r[0] == "frame" for r in records[1:]), records
+    assert records[-1][2] == [("cf1", (1.0, 2.0, 3.0), (1.0, 0.0, 0.0, 0.0))]  # type: ignore[index]
+    assert b"tracker: cf1" in err and b"VRPN Warning" in err  # to the log instead
