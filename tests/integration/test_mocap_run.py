@@ -286,6 +286,10 @@ def test_a_run_with_poses_from_a_vrpn_server_through_the_real_client(
             **{
                 'system = "sim"': f'system = "vrpn"\nhost = "127.0.0.1"\nport = {server.port}',
                 "[mocap.sim]" + sim_section: "",
+                # The pose path is what this test checks, not timing: on a loaded machine the
+                # first ticks may be late (measured: 2 of 40 with two busy processes), which
+                # alone would exit 3 (late ticks are tested in test_selfclock / test_outcome).
+                'mode = "realtime"': 'mode = "realtime"\nmax_late_fraction = 0.5',
             },
         )
         run = RunProcess(tmp_path, path, "--duration", "2")
