@@ -328,7 +328,7 @@ class MotionCaptureClient:
         needs_body = self.system == "vrpn"
         silence_s = SILENCE_FRAMES / (self.rate_hz or 100.0)
         last_heard, number, ready = self._clock(), 0, False
-        deadline = last_heard + self.connect_timeout_s  # for the first frame
+        first_by = last_heard + self.connect_timeout_s  # the first frame's deadline
         if needs_body:
             first = (
                 f"no body from {where} within {self.connect_timeout_s:g} s (VRPN reports no "
@@ -346,7 +346,7 @@ class MotionCaptureClient:
             record = self._next(reader, _POLL_S, streaming=True)
             now = self._clock()
             if not usable(record):
-                if not ready and now > deadline:
+                if not ready and now > first_by:
                     raise MocapConnectionError(first)
                 if ready and now - last_heard > silence_s:
                     raise MocapServerLost(f"{self.system} server at {self.host} silent for "

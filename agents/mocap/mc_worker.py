@@ -69,7 +69,11 @@ class RecordReader:
             return None
         payload = bytes(self._buffer[_LENGTH.size : end])
         del self._buffer[:end]
-        record = pickle.loads(payload)
+        try:
+            record = pickle.loads(payload)
+        except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError) as exc:
+            # (a truncated pickle raises EOFError: not to be read as the worker's end)
+            raise RecordError(f"malformed record from the mocap worker: {exc}") from exc
         if not isinstance(record, tuple) or not record:
             raise RecordError(f"malformed record from the mocap worker: {record!r}")
         return record

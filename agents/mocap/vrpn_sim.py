@@ -48,6 +48,8 @@ COOKIE_PREFIX = b"vrpn: ver. 07."
 SENDER_DESCRIPTION = -1
 TYPE_DESCRIPTION = -2
 POS_QUAT = "vrpn_Tracker Pos_Quat"
+#: The type id this server gives :data:`POS_QUAT` (its type description says so).
+POS_QUAT_ID = 0
 _HEADER = struct.Struct(">iiiii4x")
 _POS_QUAT = struct.Struct(">ii3d4d")
 #: Bound on a client's cookie and on connecting back to it [s].
@@ -169,7 +171,7 @@ class VrpnTrackerServer:
                 message(i, SENDER_DESCRIPTION, description(name), now)
                 for i, name in enumerate(self.bodies)
             )
-            sock.sendall(names + message(0, TYPE_DESCRIPTION, description(POS_QUAT), now))
+            sock.sendall(names + message(POS_QUAT_ID, TYPE_DESCRIPTION, description(POS_QUAT), now))
             sock.setblocking(False)
         except OSError as exc:
             logger.info("vrpn sim: client refused: %s", exc)
@@ -210,7 +212,7 @@ class VrpnTrackerServer:
     def _send_frame(self) -> None:
         poses, now = self._poses(), time.time()
         data = b"".join(
-            message(i, 0, _POS_QUAT.pack(0, 0, *pose[0], *pose[1][1:], pose[1][0]), now)
+            message(i, POS_QUAT_ID, _POS_QUAT.pack(0, 0, *pose[0], *pose[1][1:], pose[1][0]), now)
             for i, name in enumerate(self.bodies)
             if (pose := poses.get(name)) is not None
         )
@@ -218,7 +220,7 @@ class VrpnTrackerServer:
         for sock in list(self._clients):
             try:
                 sock.sendall(data)
-            except (BlockingIOError, OSError):
+            except OSError:  # BlockingIOError included: its buffer is full
                 self._drop(sock)  # a client that cannot keep up is dropped, as a lost link
 
     def _serve(self) -> None:

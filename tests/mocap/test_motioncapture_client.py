@@ -76,7 +76,7 @@ def test_stop_ends_a_waiting_client_at_once() -> None:
     assert error is None and took < 10.0
 
 
-def test_the_worker_process_is_gone_after_the_client(tmp_path) -> None:
+def test_the_worker_process_is_gone_after_the_client() -> None:
     client = MotionCaptureClient("optitrack", "127.0.0.1", connect_timeout_s=0.5)
     run_client(client)
     workers = subprocess.run(
@@ -126,6 +126,17 @@ def test_a_malformed_record_is_refused() -> None:
     try:
         os.write(write_fd, (1 << 30).to_bytes(4, "little"))  # a length over the bound
         with pytest.raises(RecordError):
+            RecordReader(read_fd).read(1.0)
+    finally:
+        os.close(read_fd)
+        os.close(write_fd)
+
+
+def test_a_truncated_pickle_is_a_malformed_record_not_the_workers_end() -> None:
+    read_fd, write_fd = os.pipe()
+    try:
+        os.write(write_fd, (2).to_bytes(4, "little") + b"\x80\x05")  # pickle raises EOFError
+        with pytest.raises(RecordError, match="malformed"):
             RecordReader(read_fd).read(1.0)
     finally:
         os.close(read_fd)
