@@ -12,12 +12,17 @@ autogroup niced as well, 10 %.
 :func:`lower_own_priority` therefore raises both: the process's niceness and its autogroup's
 (``/proc/self/autogroup``, which only this process's session shares — call it only in a
 process that leads a session of its own). On kernels without autogroup the second step is
-skipped; on any other failure the first still holds and the caller is told.
+skipped, and so it is for a process in the *root* autogroup (the one of processes whose
+session began before autogroup existed, e.g. a container's first process that never called
+``setsid``): the kernel shows it as an empty file, refuses a niceness for it, and schedules its
+processes against each other by niceness alone. On any other failure the first step still
+holds and the caller is told.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 #: The autogroup (session scheduling group) of the calling process.
@@ -41,16 +46,38 @@ def lower_own_priority(increment: int, *, autogroup: Path = AUTOGROUP) -> int:
     except OSError as exc:
         raise PriorityError(f"os.nice({increment}): {exc}") from exc
     try:
+        if parse_autogroup(autogroup.read_text()) is None:
+            return niceness  # the root autogroup: the niceness is all there is
         autogroup.write_text(f"{niceness}\n")
     except FileNotFoundError:
         return niceness  # a kernel built without autogroup: the niceness is all there is
-    except OSError as exc:
+    except (OSError, ValueError) as exc:
         raise PriorityError(f"autogroup niceness ({autogroup}): {exc}") from exc
     return niceness
 
 
+#: What the kernel shows of an autogroup: "/autogroup-1234 nice 10".
+AUTOGROUP_LINE = re.compile(r"/autogroup-\d+ nice (-?\d+)")
+
+
+def parse_autogroup(text: str) -> int | None:
+    """The niceness in the text of a ``/proc/PID/autogroup`` file; ``None`` for an empty one
+    (the root autogroup, which the kernel does not show and in which niceness alone counts).
+
+    Raises:
+        ValueError: the text is neither empty nor the kernel's one line.
+    """
+    if not text.strip():
+        return None
+    match = AUTOGROUP_LINE.fullmatch(text.strip())
+    if match is None:
+        raise ValueError(f"not an autogroup line: {text.strip()!r}")
+    return int(match.group(1))
+
+
 def autogroup_niceness(pid: int) -> int | None:
-    """The niceness of process ``pid``'s autogroup (``None``: no autogroup on this kernel).
+    """The niceness of process ``pid``'s autogroup (``None``: no autogroup on this kernel, or
+    the process is in the root autogroup).
 
     Raises:
         ProcessLookupError: no process ``pid``.
@@ -61,5 +88,4 @@ def autogroup_niceness(pid: int) -> int | None:
         text = Path(f"/proc/{pid}/autogroup").read_text()
     except FileNotFoundError:
         return None
-    # "/autogroup-1234 nice 10"
-    return int(text.split("nice", 1)[1])
+    return parse_autogroup(text)

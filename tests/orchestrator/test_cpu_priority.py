@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from hilswarm.orchestrator.cpu_priority import AUTOGROUP, autogroup_niceness
+from hilswarm.orchestrator.cpu_priority import AUTOGROUP, autogroup_niceness, parse_autogroup
 
 HAS_AUTOGROUP = AUTOGROUP.exists()
 
@@ -74,5 +74,65 @@ def test_autogroup_niceness_of_a_missing_process_raises() -> None:
 
 
 def test_this_process_reads_its_own_autogroup() -> None:
+    # An int, or None: no autogroup, or the root autogroup (a test run whose session began
+    # with the container, which the kernel shows as an empty file).
     group = autogroup_niceness(os.getpid())
-    assert group is None if not HAS_AUTOGROUP else isinstance(group, int)
+    assert group is None or isinstance(group, int)
+
+
+@pytest.mark.skipif(not HAS_AUTOGROUP, reason="this kernel has no autogroup scheduling")
+def test_a_new_session_reads_an_autogroup_of_its_own() -> None:
+    out = run_child(
+        "import os\n"
+        "from hilswarm.orchestrator.cpu_priority import autogroup_niceness\n"
+        "print(autogroup_niceness(os.getpid()))\n"
+    )
+    assert out.lstrip("-").isdigit()
+
+
+@pytest.mark.parametrize(
+    ("text", "niceness"),
+    [("/autogroup-28616 nice 0\n", 0), ("/autogroup-7 nice 10\n", 10),
+     ("/autogroup-7 nice -5\n", -5), ("", None), ("\n", None)],
+)  # fmt: skip
+def test_the_kernel_autogroup_line_is_parsed(text: str, niceness: int | None) -> None:
+    assert parse_autogroup(text) == niceness
+
+
+@pytest.mark.parametrize("text", ["nice 10", "/autogroup-7 nice ten", "/autogroup-7\n"])
+def test_anything_else_in_an_autogroup_file_is_refused(text: str) -> None:
+    with pytest.raises(ValueError, match="not an autogroup line"):
+        parse_autogroup(text)
+
+
+def test_the_root_autogroup_keeps_the_niceness_alone(tmp_path: Path) -> None:
+    # The root autogroup reads as an empty file, and the kernel refuses a niceness for it
+    # (EINVAL): the niceness alone counts there, so nothing is written and nothing fails.
+    root = tmp_path / "autogroup"
+    root.write_text("")
+    out = run_child(
+        "import os\n"
+        "from pathlib import Path\n"
+        "from hilswarm.orchestrator.cpu_priority import lower_own_priority\n"
+        "before = os.getpriority(os.PRIO_PROCESS, 0)\n"
+        f"new = lower_own_priority(2, autogroup=Path({str(root)!r}))\n"
+        "print(before, new)\n"
+    )
+    before, new = (int(word) for word in out.split())
+    assert new == min(19, before + 2)
+    assert root.read_text() == ""
+
+
+def test_an_autogroup_file_in_an_unknown_form_is_reported(tmp_path: Path) -> None:
+    odd = tmp_path / "autogroup"
+    odd.write_text("something else\n")
+    out = run_child(
+        "from pathlib import Path\n"
+        "from hilswarm.orchestrator.cpu_priority import PriorityError, lower_own_priority\n"
+        "try:\n"
+        f"    lower_own_priority(1, autogroup=Path({str(odd)!r}))\n"
+        "except PriorityError as exc:\n"
+        "    print('PriorityError', exc)\n"
+    )
+    assert out.startswith("PriorityError autogroup niceness")
+    assert "not an autogroup line" in out
