@@ -103,6 +103,20 @@ class RecordReader:
         return None
 
 
+def library_config(system: str, hostname: str) -> dict[str, str]:
+    """``motioncapture.connect``'s configuration for ``hostname`` (``host`` or ``host:port``).
+
+    OptiTrack's backend takes the NatNet command port apart (``port_command``; Motive's
+    default 1510 otherwise) and an address alone as ``hostname``; Vicon's and VRPN's take
+    ``host:port`` as it is.
+    """
+    if system == "optitrack":
+        host, colon, port = hostname.rpartition(":")
+        if colon and port.isdigit():
+            return {"hostname": host, "port_command": port}
+    return {"hostname": hostname}
+
+
 def _write(out: Any, record: tuple[Any, ...]) -> None:
     out.write(encode(record))
     out.flush()
@@ -127,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
         _write(out, ("error", f"the motioncapture package is missing: {exc}"))
         return 1
     try:
-        mc = motioncapture.connect(system, {"hostname": hostname})
+        mc = motioncapture.connect(system, library_config(system, hostname))
     except RuntimeError as exc:
         _write(out, ("error", f"cannot connect to {system} at {hostname}: {exc}"))
         return 1

@@ -40,7 +40,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("file", nargs="?", type=Path, help="experiment file with [mocap]")
     parser.add_argument("--system", choices=SYSTEMS, help="mocap system (without a file)")
     parser.add_argument("--host", help="mocap server address (without a file)")
-    parser.add_argument("--port", type=int, default=None, help="server port (system default)")
+    parser.add_argument(
+        "--port",
+        type=int,
+        default=None,
+        help="server port (system default; OptiTrack: NatNet's command port)",
+    )
     parser.add_argument("--up-axis", choices=("y", "z"), default=None, help="override up axis")
     parser.add_argument(
         "--seconds",

@@ -268,23 +268,36 @@ def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
         assert np.median(latency) < FRAME_S, agent  # mostly the newest frame's pose
 
 
-def test_a_run_with_poses_from_a_vrpn_server_through_the_real_client(
-    runs: list[RunProcess], tmp_path: Path
+@pytest.mark.parametrize("system", ["vrpn", "optitrack"])
+def test_a_run_with_poses_from_a_protocol_server_through_the_real_client(
+    runs: list[RunProcess], tmp_path: Path, system: str
 ) -> None:
-    """``system = "vrpn"``: the mocap process's ``motioncapture`` client (in its worker process)
-    against the protocol-level VRPN server on loopback; the robots stand still in its view."""
+    """``system = "vrpn"`` / ``"optitrack"``: the mocap process's ``motioncapture`` client (in
+    its worker process) against the protocol-level VRPN or NatNet server on loopback; the
+    robots stand still in its view. OptiTrack streams y up: the poses are given as Motive sends
+    them (hand-computed here), and the agents must see them in the world frame (z up)."""
     pytest.importorskip("motioncapture")
+    from hilswarm.agents.mocap.natnet_sim import NatNetServer
     from hilswarm.agents.mocap.vrpn_sim import VrpnTrackerServer
 
     yaw = 0.5
-    quat = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
-    poses = {f"frisbee{i}": ((0.5 * i, -0.25 * i, 0.0), quat) for i in (1, 2, 3)}
-    with VrpnTrackerServer(list(poses), lambda: poses, rate_hz=100.0) as server:
+    world = {f"frisbee{i}": (0.5 * i, -0.25 * i) for i in (1, 2, 3)}  # x y [m], z = 0
+    if system == "vrpn":  # z up, as the world
+        quat = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+        poses = {body: ((x, y, 0.0), quat) for body, (x, y) in world.items()}
+        server = VrpnTrackerServer(list(poses), lambda: poses, rate_hz=100.0)
+        port = server.port
+    else:  # y up: (x, y, z) = (world x, world z, -world y), a yaw about the system's +y
+        quat = (math.cos(yaw / 2), 0.0, math.sin(yaw / 2), 0.0)
+        poses = {body: ((x, 0.0, -y), quat) for body, (x, y) in world.items()}
+        server = NatNetServer(list(poses), lambda: poses, rate_hz=100.0)
+        port = server.command_port
+    with server:
         sim_section = DEMO.read_text().split("[mocap.sim]", 1)[1].split("\n\n", 1)[0]
         path = variant(
             tmp_path,
             **{
-                'system = "sim"': f'system = "vrpn"\nhost = "127.0.0.1"\nport = {server.port}',
+                'system = "sim"': f'system = "{system}"\nhost = "127.0.0.1"\nport = {port}',
                 "[mocap.sim]" + sim_section: "",
                 # The pose path is what this test checks, not timing: on a loaded machine the
                 # first ticks may be late (measured: 2 of 40 with two busy processes), which
@@ -299,6 +312,5 @@ def test_a_run_with_poses_from_a_vrpn_server_through_the_real_client(
     for agent, body in (("leader", "frisbee1"), ("f1", "frisbee2"), ("f2", "frisbee3")):
         y = outputs(recording, agent)  # x y [m, world], psi [rad]
         assert len(y) == 40, agent
-        x, y_m = poses[body][0][:2]
-        np.testing.assert_allclose(y[-1], (x, y_m, yaw), atol=0.05)  # the filter's estimate
+        np.testing.assert_allclose(y[-1], (*world[body], yaw), atol=0.05)  # the filter's estimate
         assert recording[f"/{agent}/pose"], agent

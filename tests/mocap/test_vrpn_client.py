@@ -13,47 +13,16 @@ import time
 
 import numpy as np
 import pytest
-from hilswarm.agents.mocap.clients import Frame, MocapServerLost, MotionCaptureClient
+from hilswarm.agents.mocap.clients import MocapServerLost, MotionCaptureClient
 from hilswarm.agents.mocap.frames import convention, pose_from
 from hilswarm.agents.mocap.vrpn_sim import VrpnTrackerServer
+from mocap_stream import stream
 
 pytest.importorskip("motioncapture")
 
 YAW = 0.7  # [rad]
 #: A yaw of 0.7 rad about z, as (w, x, y, z).
 QUAT = (math.cos(YAW / 2), 0.0, 0.0, math.sin(YAW / 2))
-
-
-def stream(
-    client: MotionCaptureClient, frames_wanted: int, bound_s: float = 20.0
-) -> tuple[list[Frame], BaseException | None]:
-    """Run ``client`` on a thread until it gave ``frames_wanted`` frames (then stop) or raised;
-    bounded by ``bound_s``."""
-    frames: list[Frame] = []
-    errors: list[BaseException] = []
-    enough = threading.Event()
-
-    def on_frame(frame: Frame) -> None:
-        frames.append(frame)
-        if len(frames) >= frames_wanted:
-            enough.set()
-            client.stop()
-
-    def target() -> None:
-        try:
-            client.run(on_frame, lambda: None)
-        except BaseException as exc:
-            errors.append(exc)
-        finally:
-            enough.set()
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    assert enough.wait(bound_s), "no frames and no error within the bound"
-    client.stop()
-    thread.join(10.0)
-    assert not thread.is_alive()
-    return frames, (errors[0] if errors else None)
 
 
 def test_the_real_client_reads_names_positions_and_rotations() -> None:
