@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +26,7 @@ from hilswarm.agents.mocap.natnet_sim import (
     NatNetServer,
     packet,
 )
+from hilswarm.orchestrator.cli import main
 from mocap_stream import stream
 
 pytest.importorskip("motioncapture")
@@ -143,3 +145,27 @@ def test_hilswarm_mocap_lists_the_optitrack_bodies_in_the_world_frame() -> None:
     row = next(line for line in done.stdout.splitlines() if line.strip().startswith("cf1"))
     words = row.split()
     assert [float(w) for w in words[-4:]] == pytest.approx([*WORLD, math.degrees(YAW)], abs=0.01)
+
+
+def test_check_names_a_body_motive_does_not_track(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    demo = (Path(__file__).resolve().parents[2] / "graphs" / "lead_follow_mocap.toml").read_text()
+    head, _, rest = demo.partition("\n[mocap]\n")
+    _, _, graph = rest.partition("\n[graph]\n")
+    poses = {
+        "frisbee1": (Y_UP_POSITION, Y_UP_QUAT),
+        "frisbee2": None,  # listed in the model definitions, not tracked
+        "frisbee3": (Y_UP_POSITION, LEVEL),
+    }
+    with NatNetServer(list(poses), lambda: poses, rate_hz=100.0) as server:
+        path = tmp_path / "experiment.toml"
+        path.write_text(
+            f'{head}\n[mocap]\nsystem = "optitrack"\nhost = "127.0.0.1"\n'
+            f"port = {server.command_port}\nrate_hz = 100.0\n\n[graph]\n{graph}"
+        )
+        assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "agents.f1.mocap_body: body 'frisbee2' is not visible to optitrack" in err
+    assert "it sees: frisbee1, frisbee3" in err
+    assert "agents.leader" not in err and "agents.f2" not in err
