@@ -102,6 +102,8 @@ from hilswarm.agents.tick_engine import (  # noqa: F401 - re-exported: the engin
     STALE_TICK_PERIODS,
     Tick,
     TickEngine,
+    is_warmup,
+    preroll_times,
 )
 
 logger = logging.getLogger(__name__)
@@ -638,6 +640,8 @@ class Agent:
         except bus.BusMessageError:
             self._count_malformed("y")
             return
+        if is_warmup(k):
+            return  # the pre-roll's: the path is warm, nothing to keep
         values.flags.writeable = False  # shared with the controller: read-only, no copy
         arrived = self._clock()
         with self._engine_lock:
@@ -712,6 +716,7 @@ class Agent:
     def _work_loop(self) -> None:
         """The worker: ticks, then commands between ticks, then the telemetry batch."""
         get, engine, lock, clock = self._work.get, self.engine, self._engine_lock, self._clock
+        preroll: list[float] = []  # self-clocked: when the warm-up outputs are due [s]
         try:
             while True:
                 with lock:
@@ -721,7 +726,11 @@ class Agent:
                     # gives. Leave ``armed`` now, not on tick 0: the transition and its status
                     # message cost ~0.6 ms of CPU in every agent at once (docs/running.md).
                     self._transition("start", "schedule received")
+                    now = clock()
+                    preroll = [t for t in preroll_times(due, self.config.dt) if t > now]
                 timeout = self._telemetry_due if due is None else min(due, self._telemetry_due)
+                if preroll:
+                    timeout = min(timeout, preroll[0])
                 timeout -= clock()
                 try:
                     item = get(timeout=min(max(timeout, 0.0), 1.0))
@@ -732,6 +741,10 @@ class Agent:
                     if item[0] == _W_QUIT:
                         return
                     self._handle_work(item)
+                if preroll and clock() >= preroll[0]:
+                    self._put_warmup(-len(preroll))
+                    while preroll and clock() >= preroll[0]:
+                        del preroll[0]  # late ones are skipped, never sent in a burst
                 self._run_ready_ticks()
                 if self._clock() >= self._telemetry_due:
                     self.publish_telemetry()
@@ -741,6 +754,17 @@ class Agent:
             with self._engine_lock:
                 self.engine.running = False
             self._queue.put((_FAILED, exc))
+
+    def _put_warmup(self, k: int) -> None:
+        """Put the pre-roll's warm-up output ``k`` (< 0) on the y key
+        (:func:`~hilswarm.agents.tick_engine.preroll_times`): NaN values of the vehicle's
+        size and an empty report, which every receiver ignores."""
+        hw = self.hardware
+        if hw is None or self.engine.k >= 0 or self.lifecycle.state_id != "running":
+            return
+        values = np.full(int(hw.vehicle.n_outputs), np.nan)
+        report = bus.encode_report(bus.AgentTiming(), None, None)
+        self._y_pub.put(bus.encode_vector(k, k * self.config.dt, values), attachment=report)
 
     def _run_ready_ticks(self) -> None:
         """Run every tick the engine hands out (released, inputs in)."""

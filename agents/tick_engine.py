@@ -86,12 +86,58 @@ MAX_NEIGHBOUR_HISTORY = 2048
 REALTIME_Y_AHEAD = 2
 #: Relative tolerance of a tick's ``t`` against ``k * dt`` (and of a schedule's ``dt``).
 TICK_TIME_RTOL = 1e-9
-#: Self-clocked: a schedule may make its next tick due at most this far ahead [periods]
-#: (the manager's first tick is due 5 periods after the schedule, at most).
-SCHEDULE_AHEAD_PERIODS = 10.0
+#: Realtime: the manager's lead before tick 0 is this many periods, at most
+#: :data:`START_LEAD_MAX_S` (plus the pre-roll's span when self-clocked, :func:`start_lead`).
+START_LEAD_PERIODS = 5
+#: Realtime: bound on the lead before tick 0, without the pre-roll [s].
+START_LEAD_MAX_S = 0.05
+#: Self-clocked: warm-up outputs each agent puts on its y key before tick 0 (the pre-roll,
+#: :func:`preroll_times`).
+PREROLL_TICKS = 8
+#: Self-clocked: longest spacing of the pre-roll's warm-up outputs [s] (the period itself when
+#: shorter).
+PREROLL_PERIOD_MAX_S = 0.01
+#: Self-clocked: a schedule may make its next tick due at most this far ahead [periods]: the
+#: manager's first tick is due at most :data:`START_LEAD_PERIODS` + :data:`PREROLL_TICKS`
+#: periods after its schedule (:func:`start_lead`), and 5 more are slack.
+SCHEDULE_AHEAD_PERIODS = float(START_LEAD_PERIODS + PREROLL_TICKS + 5)
 #: Self-clocked: the run's first schedule may arrive this late [periods after ``first`` was
 #: due] (an agent stalled at the start joins at the tick due then).
 SCHEDULE_START_LAG_PERIODS = 100.0
+
+
+def start_lead(dt: float, *, self_clocked: bool) -> float:
+    """The manager's lead before tick 0 of a realtime run [s]: :data:`START_LEAD_PERIODS`
+    periods, at most :data:`START_LEAD_MAX_S`, and for a self-clocked run the pre-roll's span
+    (:func:`preroll_times`) before that."""
+    lead = min(START_LEAD_MAX_S, START_LEAD_PERIODS * dt)
+    if self_clocked:
+        lead += PREROLL_TICKS * min(dt, PREROLL_PERIOD_MAX_S)
+    return lead
+
+
+def preroll_times(t0: float, dt: float) -> list[float]:
+    """When a self-clocked agent puts its warm-up outputs before tick 0 (due at ``t0`` [s,
+    CLOCK_MONOTONIC], period ``dt`` [s]): :data:`PREROLL_TICKS` instants spaced by the period
+    (at most :data:`PREROLL_PERIOD_MAX_S`), the last one a spacing before ``t0``, oldest first.
+
+    The pre-roll (docs/running.md, "The pre-roll"): a run's processes sit idle between arming
+    and tick 0, and their first ticks, all at once, were measured to cost up to twice a steady
+    tick (the bare bus, 32 clients at 100 Hz: tick 0 complete after 6.1-9.3 ms, against
+    3.3-4.7 ms with ten warm-up exchanges before it). So in the lead before tick 0 every agent
+    runs the tick path's bus half: its worker wakes on the schedule and puts an output with
+    ``k < 0`` (NaN values) on its y key, which its neighbours and the manager receive and
+    ignore (:func:`is_warmup`). No controller step, no board exchange: nothing the experiment
+    sees, and nothing recorded.
+    """
+    spacing = min(dt, PREROLL_PERIOD_MAX_S)
+    return [t0 - j * spacing for j in range(PREROLL_TICKS, 0, -1)]
+
+
+def is_warmup(k: int) -> bool:
+    """Is an output of tick ``k`` a pre-roll warm-up (``k < 0``), which every receiver ignores?"""
+    return k < 0
+
 
 #: Reasons a well-formed input is rejected (keys of :attr:`TickEngine.dropped`).
 DROP_REASONS = (

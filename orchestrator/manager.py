@@ -54,6 +54,7 @@ import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.agents.mocap import frame_clock
+from hilswarm.agents.tick_engine import is_warmup, start_lead
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
 from hilswarm.orchestrator.outcome import COUNTER_NAMES
@@ -364,6 +365,8 @@ class InstanceManager:
                 logger.warning("agent %s sent a y of %d bytes", self.names[i], len(payload))
                 return
             k = unpack_k(payload)[0]
+            if is_warmup(k):
+                return  # a pre-roll warm-up (tick_engine.preroll_times): not recorded
             with lock:
                 if record:
                     attachment = sample.attachment
@@ -640,8 +643,9 @@ class InstanceManager:
             tick.recount()
         self._publish_state("running")
         start = clock()
-        t0 = start + (min(0.05, 5 * dt) if realtime else 0.0)
         clocked = self.self_clocked
+        # The lead before tick 0; self-clocked agents put their warm-up outputs in it too.
+        t0 = start + (start_lead(dt, self_clocked=clocked) if realtime else 0.0)
         if realtime:
             self._ticks.start(t0)  # tick k due at t0 + k dt, or in step with the mocap frames
             t0 = self._due(0)

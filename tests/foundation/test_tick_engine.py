@@ -9,11 +9,16 @@ import pytest
 from hilswarm.agents import bus
 from hilswarm.agents.tick_engine import (
     NEIGHBOUR_HISTORY,
+    PREROLL_PERIOD_MAX_S,
+    PREROLL_TICKS,
     REALTIME_SLACK_TICKS,
     SCHEDULE_AHEAD_PERIODS,
     SCHEDULE_START_LAG_PERIODS,
     STALE_TICK_PERIODS,
     TickEngine,
+    is_warmup,
+    preroll_times,
+    start_lead,
 )
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -395,3 +400,25 @@ def test_property_self_clocked_ticks_follow_the_clock_whatever_schedules_are_for
         assert e.k <= due + REALTIME_SLACK_TICKS + 1
         nxt = e.next_due()
         assert nxt is not None and nxt - now <= (SCHEDULE_AHEAD_PERIODS + 1) * DT + 1e-9
+
+
+@pytest.mark.parametrize("rate_hz", [0.5, 1.0, 10.0, 23.0, 50.0, 100.0, 240.0, 1000.0])
+def test_the_managers_lead_with_its_pre_roll_is_a_schedule_the_agents_accept(
+    rate_hz: float,
+) -> None:
+    dt = 1.0 / rate_hz
+    lead = start_lead(dt, self_clocked=True)
+    # 5 periods (at most 50 ms), then the pre-roll: 8 spacings of one period (at most 10 ms)
+    assert lead == pytest.approx(min(0.05, 5 * dt) + PREROLL_TICKS * min(dt, 0.01))
+    assert start_lead(dt, self_clocked=False) == pytest.approx(min(0.05, 5 * dt))
+    e = TickEngine(("a",), NAMES, dt, 8)
+    e.running = True
+    assert e.on_schedule(0, 100, T0, dt, arrived=T0 - lead), e.counters()
+    assert e.next_due() == T0
+
+
+def test_the_pre_roll_is_spaced_by_the_period_at_most_10_ms_and_ends_before_tick_0() -> None:
+    assert preroll_times(1.0, 0.02) == pytest.approx([1.0 - 0.01 * j for j in range(8, 0, -1)])
+    assert preroll_times(1.0, 0.004) == pytest.approx([1.0 - 0.004 * j for j in range(8, 0, -1)])
+    assert PREROLL_PERIOD_MAX_S == 0.01 and len(preroll_times(0.0, 1.0)) == PREROLL_TICKS
+    assert [is_warmup(k) for k in (-8, -1, 0, 1)] == [True, True, False, False]

@@ -27,6 +27,7 @@ import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import Credentials
 from hilswarm.agents.mcap_io import iter_messages
+from hilswarm.agents.tick_engine import is_warmup
 from hilswarm.orchestrator.bus_access import OPERATOR, VIEWER
 from hilswarm.orchestrator.run_registry import RunEntry, list_runs
 
@@ -249,6 +250,7 @@ class Spy:
         self.session = bus.open_session(as_viewer)
         self.operator = bus.open_session(as_operator)
         self.counts: dict[str, int] = defaultdict(int)
+        self.warmups: dict[str, int] = defaultdict(int)  # pre-roll outputs (k < 0), per key
         self.last: dict[str, bytes] = {}
         self._lock = threading.Lock()
         self.subscriber = self.session.declare_subscriber(
@@ -257,9 +259,16 @@ class Spy:
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr).replace(self.keys.prefix, self._legacy.prefix, 1)
+        payload = sample.payload.to_bytes()
+        warmup = key.endswith("/y") and is_warmup(
+            int.from_bytes(payload[:8], "little", signed=True)
+        )
         with self._lock:
+            if warmup:  # the pre-roll's, ignored like every receiver does
+                self.warmups[key] += 1
+                return
             self.counts[key] += 1
-            self.last[key] = sample.payload.to_bytes()
+            self.last[key] = payload
 
     def count(self, key: str) -> int:
         with self._lock:
