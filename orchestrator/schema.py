@@ -233,7 +233,8 @@ class MocapSection(_Table):
     host: NonEmpty | None = None
     """The mocap server's address; required except for sim (then 127.0.0.1)."""
     port: int | None = Field(None, gt=0, lt=65536)
-    """The server's port (default: the system's)."""
+    """The server's port (default: the system's; Qualisys 22223, OptiTrack NatNet's command
+    port 1510, VRPN 3883)."""
     rate_hz: float = Field(DEFAULT_RATE_HZ, gt=0.0, le=10000.0)
     """The system's frame rate [Hz]."""
     hold_frames: int = Field(DEFAULT_HOLD_FRAMES, ge=1, le=100000)

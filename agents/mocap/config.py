@@ -7,7 +7,8 @@
     host = "192.168.1.10"   # the mocap server (sim: the built-in simulator on loopback)
     rate_hz = 100.0         # the system's frame rate [Hz]
     hold_frames = 10        # frames a lost body's pose is held before the agent goes safe
-    # port = 22223          # optional: the server's port (system default otherwise)
+    # port = 22223          # optional: the server's port (system default otherwise;
+    #                       # OptiTrack: NatNet's command port, 1510)
     # up_axis = "z"         # optional: override the system's default up axis ("y" or "z")
     # position_std_m = 0.002, yaw_std_rad = 0.02   # Kalman measurement noise
     # tick_lock = true      # realtime ticks in step with the frames (docs/mocap.md)
