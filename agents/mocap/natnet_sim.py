@@ -37,13 +37,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import select
 import socket
 import struct
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from types import TracebackType
+
+from hilswarm.agents.mocap.paced_server import PacedServer
 
 logger = logging.getLogger(__name__)
 
@@ -82,7 +81,7 @@ def free_udp_port(host: str = "0.0.0.0") -> int:
         return int(probe.getsockname()[1])
 
 
-class NatNetServer:
+class NatNetServer(PacedServer):
     """A NatNet server on ``host`` (loopback), unicast, one rigid body per body (module docstring).
 
     Args:
@@ -107,11 +106,10 @@ class NatNetServer:
         data_port: int = 0,
         version: tuple[int, int] = (3, 1),
     ) -> None:
-        if rate_hz <= 0.0:
-            raise ValueError(f"rate_hz must be positive, got {rate_hz!r}")
         if tuple(version) not in VERSIONS:
             raise ValueError(f"NatNet version {version!r} is not one of {VERSIONS}")
-        self.bodies, self._poses, self.period_s = tuple(bodies), poses, 1.0 / rate_hz
+        super().__init__(rate_hz, "natnet-sim")
+        self.bodies, self._poses = tuple(bodies), poses
         self.version = (int(version[0]), int(version[1]))
         self.host = host
         self._command = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -121,41 +119,13 @@ class NatNetServer:
         self._data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._data.bind((host, 0))
         self.clients: set[str] = set()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="natnet-sim", daemon=True)
         self._started_ns = time.monotonic_ns()
-        self.frames = 0
         self.refused = 0
 
     @property
     def sized(self) -> bool:
         """Whether each list and description carries its size in bytes (NatNet 4.1 and later)."""
         return self.version >= (4, 1)
-
-    def start(self) -> NatNetServer:
-        """Serve on a thread of its own; returns self."""
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        """Stop serving (the clients see the frames stop, as when Motive goes away)."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
-        self._command.close()
-        self._data.close()
-        self.clients.clear()
-
-    def __enter__(self) -> NatNetServer:
-        return self.start()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
 
     # -- packets ---------------------------------------------------------------------------------
 
@@ -207,6 +177,17 @@ class NatNetServer:
 
     # -- the server's thread ---------------------------------------------------------------------
 
+    def _readable(self) -> list[socket.socket]:
+        return [self._command]
+
+    def _on_readable(self, ready: list[socket.socket]) -> None:
+        self._command_in()
+
+    def _close(self) -> None:
+        self._command.close()
+        self._data.close()
+        self.clients.clear()
+
     def _command_in(self) -> None:
         datagram, sender = self._command.recvfrom(_MAX_DATAGRAM)
         if len(datagram) < _HEAD.size:
@@ -237,14 +218,3 @@ class NatNetServer:
         for address in list(self.clients):
             with contextlib.suppress(OSError):  # UDP: a client not listening loses the frame
                 self._data.sendto(data, (address, self.data_port))
-
-    def _serve(self) -> None:
-        next_frame = time.monotonic()
-        while not self._stop.is_set():
-            wait = max(0.0, next_frame - time.monotonic())
-            ready, _, _ = select.select([self._command], [], [], wait)
-            if ready:
-                self._command_in()
-            if time.monotonic() >= next_frame:
-                self._send_frame()
-                next_frame = max(next_frame + self.period_s, time.monotonic() - self.period_s)

@@ -31,13 +31,12 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import select
 import socket
 import struct
-import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from types import TracebackType
+
+from hilswarm.agents.mocap.paced_server import PacedServer
 
 logger = logging.getLogger(__name__)
 
@@ -71,7 +70,7 @@ def description(name: str) -> bytes:
     return struct.pack(">I", len(raw)) + raw
 
 
-class VrpnTrackerServer:
+class VrpnTrackerServer(PacedServer):
     """A VRPN server on ``host`` (loopback) with one tracker per body (module docstring).
 
     Args:
@@ -92,16 +91,12 @@ class VrpnTrackerServer:
         host: str = "127.0.0.1",
         port: int = 0,
     ) -> None:
-        if rate_hz <= 0.0:
-            raise ValueError(f"rate_hz must be positive, got {rate_hz!r}")
-        self.bodies, self._poses, self.period_s = tuple(bodies), poses, 1.0 / rate_hz
+        super().__init__(rate_hz, "vrpn-sim")
+        self.bodies, self._poses = tuple(bodies), poses
         self.host = host
         self._udp, self._tcp = self._bind(host, port)
         self.port: int = self._udp.getsockname()[1]
         self._clients: list[socket.socket] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="vrpn-sim", daemon=True)
-        self.frames = 0
         self.refused = 0
 
     @staticmethod
@@ -124,32 +119,15 @@ class VrpnTrackerServer:
                     raise
         raise OSError("no port free for both UDP and TCP")
 
-    def start(self) -> VrpnTrackerServer:
-        """Serve on a thread of its own; returns self."""
-        self._thread.start()
-        return self
+    # -- the server's thread -----------------------------------------------------------------
 
-    def stop(self) -> None:
-        """Stop serving and close every connection (the clients see the server gone)."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
+    def _readable(self) -> list[socket.socket]:
+        return [self._udp, self._tcp, *self._clients]
+
+    def _close(self) -> None:
         for sock in (*self._clients, self._udp, self._tcp):
             sock.close()
         self._clients.clear()
-
-    def __enter__(self) -> VrpnTrackerServer:
-        return self.start()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
-
-    # -- the server's thread -----------------------------------------------------------------
 
     def _handshake(self, sock: socket.socket) -> None:
         """Cookies both ways, then the names; closes and counts a refused peer."""
@@ -180,7 +158,7 @@ class VrpnTrackerServer:
             return
         self._clients.append(sock)
 
-    def _accept(self, ready: list[socket.socket]) -> None:
+    def _on_readable(self, ready: list[socket.socket]) -> None:
         if self._udp in ready:
             datagram, _ = self._udp.recvfrom(512)
             try:
@@ -222,13 +200,3 @@ class VrpnTrackerServer:
                 sock.sendall(data)
             except OSError:  # BlockingIOError included: its buffer is full
                 self._drop(sock)  # a client that cannot keep up is dropped, as a lost link
-
-    def _serve(self) -> None:
-        next_frame = time.monotonic()
-        while not self._stop.is_set():
-            wait = max(0.0, next_frame - time.monotonic())
-            ready, _, _ = select.select([self._udp, self._tcp, *self._clients], [], [], wait)
-            self._accept(ready)
-            if time.monotonic() >= next_frame:
-                self._send_frame()
-                next_frame = max(next_frame + self.period_s, time.monotonic() - self.period_s)
