@@ -95,6 +95,7 @@ from hilswarm.agents.errors import (
     HilswarmError,
 )
 from hilswarm.agents.lifecycle import AgentLifecycle
+from hilswarm.agents.rehearsal import rehearse
 from hilswarm.agents.telemetry import TelemetryBatcher
 from hilswarm.agents.tick_engine import (  # noqa: F401 - re-exported: the engine's constants
     MAX_NEIGHBOUR_HISTORY,
@@ -508,6 +509,9 @@ class Agent:
             self._attach_pose_source(session)
             self._transition("configure", "")
             self._declare(session)
+            took = rehearse(type(self), self.config)  # the tick path warm before "armed"
+            if took is not None:
+                logger.debug("%s: rehearsed in %.1f ms", self.config.name, took * 1e3)
             self._transition("arm", f"neighbours: {', '.join(self.config.neighbours) or '-'}")
             for item in self._queue_replay:
                 self._queue.put(item)

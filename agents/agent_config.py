@@ -151,6 +151,7 @@ def build_hardware(
     *,
     endpoints: Sequence[str] = (),
     security: bus.SessionSecurity | None = None,
+    prepare_calibration: bool = True,
 ) -> AgentHardware:
     """Build the vehicle, open/configure its board and build the controller's ControlModel.
 
@@ -158,7 +159,9 @@ def build_hardware(
     the simulated radio) the board drives the vehicle's own simulated hardware
     (``vehicle.simulated_hardware``) and a simulated mocap follows that plant. ``endpoints``
     are the agent's bus endpoints, through which an ``xbee://`` board reaches the gateway
-    (authenticated with ``security``, the agent's credentials).
+    (authenticated with ``security``, the agent's credentials). ``prepare_calibration``:
+    compute the calibration's inverse now (~25 ms for a Frisbee), so that no tick pays for it
+    (off: each duty's inverse is computed on its first use; for throwaway copies).
     """
     vehicle_cls = resolve_vehicle(config.vehicle)
     vehicle = vehicle_cls(
@@ -170,7 +173,7 @@ def build_hardware(
         dt=config.dt,
     )
     calibration = getattr(vehicle, "calibration", None)
-    if calibration is not None:  # the inverse curves now, so that no tick pays for them
+    if calibration is not None and prepare_calibration:  # now, so that no tick pays for it
         calibration.prepare_inverse()
     board = None
     if getattr(vehicle, "needs_board", True):

@@ -7,11 +7,14 @@ import dataclasses
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+import hilswarm.agents.agent as agent_module
 import numpy as np
 import pytest
 from agent_rig import DT, Rig, cart_config, cart_hardware
 from hilswarm.agents import bus
+from hilswarm.agents.agent import AgentConfig, build_hardware
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.tick_engine import PREROLL_TICKS, start_lead
 from swarm_harness import RunProcess, read_recording, wait_for, write_toy_experiment
@@ -93,3 +96,37 @@ def test_a_run_records_no_warm_up_output(runs: list[RunProcess], tmp_path: Path)
     for name in ("a", "b", "c", "d"):  # no k < 0; a tick skipped under load is absent
         ks = [m["k"] for m in recording[f"/{name}/y"]]
         assert ks == sorted(set(ks)) and ks[0] >= 0 and ks[-1] == 49, (name, ks)
+
+
+def test_the_agent_rehearses_before_it_is_armed(
+    rigs: list[Rig], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A Frisbee on ``sim://`` with a registry controller rehearses its tick path once, on
+    copies, before it reports ``armed`` (agents/rehearsal.py); a toy of the tests does not."""
+    calls: list[tuple[str, float | None]] = []
+    real = agent_module.rehearse
+
+    def watched(make_agent: Any, config: AgentConfig) -> float | None:
+        took = real(make_agent, config)
+        calls.append((config.name, took))
+        return took
+
+    monkeypatch.setattr(agent_module, "rehearse", watched)
+    config = dataclasses.replace(
+        cart_config(link="sim://", name="disc"),
+        vehicle="frisbee",
+        controller="waypoint",
+        params={"waypoints": [[1.0, 0.0]]},
+        initial_state=(0.0, 0.0, 0.0),
+    )
+    rig = Rig(config, build_hardware)  # waits for armed
+    rigs.append(rig)
+    assert len(calls) == 1 and calls[0][0] == "disc" and calls[0][1] is not None
+    t0 = start_schedule(rig)
+    wait_for(lambda: LAST in rig.answered(), 10, "the schedule's last tick")
+    assert time.perf_counter() >= t0
+    assert rig.close() == 0
+
+    toy = Rig(cart_config(link="sim://"), cart_hardware(SimBoard(plant=FullBattery(), dt=DT)))
+    rigs.append(toy)
+    assert calls[1:] == [("cart", None)]  # asked, and refused: a user's classes
