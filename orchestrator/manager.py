@@ -775,9 +775,10 @@ class InstanceManager:
         closed: list[tuple[TickAccount, list[int]]] = []
         with self._lock:
             while tick.base < j and tick.base <= tick.released:
-                complete = tick.base_complete()
-                late = [] if complete else tick.unanswered()
-                closed.append((self._close_base(late, complete), late))
+                # Late: not in when the next tick was due, which the agents started on their
+                # own clocks, whenever this thread gets here (a busy machine delays it).
+                late = tick.late_at(self._next_due(tick))
+                closed.append((self._close_base(late, tick.base_complete()), late))
             if j <= last and tick.released < j:
                 tick.release(j, due_j, due_j)  # no message: sent = scheduled
             if j + 1 <= last:
@@ -792,6 +793,14 @@ class InstanceManager:
             self._count(account, late)
         if tick.base >= n_ticks:
             self._stop_reason = "completed"
+
+    def _next_due(self, tick: TickWindow) -> float:
+        """Self-clocked: when the tick after the oldest open one was due [s, manager clock]
+        (its own due time once opened, re-timed by the frame lock; else one period on)."""
+        following = tick.base + 1
+        if following <= tick.released:
+            return float(tick.scheduled[following % tick.window])
+        return float(tick.scheduled[tick.base % tick.window]) + self.dt
 
     def _reanchor_clocked(self, now: float) -> None:
         """Self-clocked resume: the tick after the last one started is due one period from

@@ -68,6 +68,13 @@ class TickWindow:
         slot = self.base % self.window
         return np.flatnonzero(~(self.arrived[slot] | self.lost)).tolist()
 
+    def late_at(self, deadline: float) -> list[int]:
+        """Agents (not lost) whose y of the oldest open tick was not in at ``deadline`` [s,
+        manager clock]: not arrived, or arrived after it (stamped when the manager got it)."""
+        slot = self.base % self.window
+        in_time = self.arrived[slot] & (self.answered_at[slot] <= deadline)
+        return np.flatnonzero(~(in_time | self.lost)).tolist()
+
     def recount(self) -> None:
         """Recompute what is expected after agents were lost."""
         self.expected = int((~self.lost).sum())
