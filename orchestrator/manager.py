@@ -829,6 +829,8 @@ class InstanceManager:
             self.summary.late[self.names[j]] += 1
         if late:
             self.summary.note_late_tick(account.k)
+            if account.k < self._completion.size:  # complete but late: the summary's
+                self._completion[account.k] = math.nan  # percentiles count it as infinite
         else:
             self.summary.ticks += 1
         self._watch_overload(account.k, bool(late))
