@@ -40,7 +40,7 @@ logger = logging.getLogger(__name__)
 #: Ticks a rehearsal runs: Python specialises a function's bytecode after a few calls, and
 #: from about tick 8 a rehearsed path costs what it costs in the steady state.
 REHEARSAL_TICKS = 10
-#: Lifecycle events that take an offline agent from ``idle`` to ``running``.
+#: Lifecycle events that take an offline agent from ``starting`` to ``running``.
 _TO_RUNNING = ("connect", "configure", "arm", "start")
 
 
