@@ -156,7 +156,9 @@ class InstanceManager:
         display: live status display (``None``: none).
         record_ticks: write ``/orchestrator/ticks`` (one message per tick).
         flush_period_s: records are handed to ``recorder`` at most this long after they came
-            [s] (a killed orchestrator loses at most this much).
+            [s] (a killed orchestrator loses at most this much). In realtime runs a batch goes
+            when a tick completes, from half a period before it is due: between the swarm's
+            ticks, not at a due time, where the recorder's work would compete with theirs.
         describe_process: says what an agent's process is doing (exited, killed, still
             running) when its liveliness token disappears, for the loss report.
         remote: agents that join from other hosts (``hilswarm run --remote``): a realtime run
@@ -224,6 +226,7 @@ class InstanceManager:
         self._late_in_block = 0
         self._overload_reported = False
         self._next_flush = 0.0
+        self._flush_from = 0.0  # realtime: a tick completing from then on carries the records
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
         # realtime: one tick in flight; self-clocked: also the next one, opened in advance
@@ -351,6 +354,7 @@ class InstanceManager:
         keep, record = self._frames.append, self._sink is not None
         lockstep = not self._realtime
         put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
+        flush_on_done = record  # realtime: a completed tick hands the records over
         window, arrived, answered_at, count = (
             tick.window,
             tick.arrived,
@@ -390,8 +394,13 @@ class InstanceManager:
                 count[slot] += 1
                 if k == tick.base:
                     tick.last_progress = received
-                    if lockstep and count[slot] >= tick.expected:
-                        put((_COMPLETE, k))
+                # Lockstep: the oldest tick is complete, release more. Realtime: the swarm is
+                # idle until its next tick, the time to hand the records to the recorder.
+                done = count[slot] >= tick.expected and (
+                    k == tick.base if lockstep else flush_on_done and received >= self._flush_from
+                )
+            if done:
+                put((_COMPLETE, k))
 
         return on_y
 
@@ -564,8 +573,13 @@ class InstanceManager:
         with self._lock:
             self._frames.append(frame)
 
-    def _flush_records(self) -> None:
-        """Hand the records gathered so far to the sink (one write)."""
+    def _flush_records(self, now: float | None = None) -> None:
+        """Hand the records gathered so far to the sink (one write); the next batch is due one
+        flush period from ``now`` [s, manager clock; default: the clock now]."""
+        self._next_flush = (self._clock() if now is None else now) + self._flush_period_s
+        # A realtime tick completing from half a period before the next batch is due carries it
+        # (the completions jitter; one event per batch, not per tick).
+        self._flush_from = self._next_flush - 0.5 * self.dt
         sink = self._sink
         if sink is None:
             return
@@ -688,9 +702,8 @@ class InstanceManager:
             if now >= next_display:
                 self._show(tick.base - 1, start, now)
                 next_display = now + 0.5
-            if now >= self._next_flush:
-                self._flush_records()
-                self._next_flush = now + self._flush_period_s
+            if now >= self._next_flush:  # no tick completed in time to carry it
+                self._flush_records(now)
             try:
                 item = get(timeout=max(0.0, wait_until - clock()))
             except queue.Empty:
@@ -943,6 +956,12 @@ class InstanceManager:
         """One event while ticking."""
         kind = item[0]
         k = self._tick.base
+        if kind == _COMPLETE and self._realtime:
+            # A realtime tick is complete: hand the records over now, while the swarm waits
+            # for its next tick, rather than at a due time, when the recorder's work would
+            # compete with every agent's.
+            self._flush_records(self._clock())
+            return
         if kind in (_COMPLETE, _STOPPED):
             return  # the loop closes the tick; stopped agents matter only at the stop
         if kind == _GONE:
