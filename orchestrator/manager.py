@@ -354,7 +354,6 @@ class InstanceManager:
         keep, record = self._frames.append, self._sink is not None
         lockstep = not self._realtime
         put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
-        flush_on_done = record  # realtime: a completed tick hands the records over
         window, arrived, answered_at, count = (
             tick.window,
             tick.arrived,
@@ -394,10 +393,10 @@ class InstanceManager:
                 count[slot] += 1
                 if k == tick.base:
                     tick.last_progress = received
-                # Lockstep: the oldest tick is complete, release more. Realtime: the swarm is
-                # idle until its next tick, the time to hand the records to the recorder.
+                # Lockstep: the oldest tick is complete, release more. Realtime, recording:
+                # the swarm is idle until its next tick, the time to hand the records over.
                 done = count[slot] >= tick.expected and (
-                    k == tick.base if lockstep else flush_on_done and received >= self._flush_from
+                    k == tick.base if lockstep else record and received >= self._flush_from
                 )
             if done:
                 put((_COMPLETE, k))

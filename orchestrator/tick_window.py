@@ -6,6 +6,7 @@ Shared by the manager's bus callbacks (which store each agent's answer) and its 
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -65,8 +66,7 @@ class TickWindow:
 
     def unanswered(self) -> list[int]:
         """Agents (not lost) whose y of the oldest open tick is not in."""
-        slot = self.base % self.window
-        return np.flatnonzero(~(self.arrived[slot] | self.lost)).tolist()
+        return self.late_at(math.inf)
 
     def late_at(self, deadline: float) -> list[int]:
         """Agents (not lost) whose y of the oldest open tick was not in at ``deadline`` [s,
