@@ -64,6 +64,7 @@ from hilswarm.orchestrator.record_stream import (
     RecordSink,
     event_frame,
     gateway_frame,
+    late_frame,
     status_frame,
     telemetry_frame,
     tick_frame,
@@ -351,7 +352,7 @@ class InstanceManager:
     def _y_callback(self, i: int) -> Callable[[zenoh.Sample], None]:
         """The callback of agent ``i``'s y key (runs on a Zenoh thread: keep it short)."""
         clock, wall_ns, lock, tick = self._clock, self._wall_ns, self._lock, self._tick
-        keep, record = self._frames.append, self._sink is not None
+        keep, record, ledger = self._frames.append, self._sink is not None, self._record_ticks
         lockstep = not self._realtime
         put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
         window, arrived, answered_at, count = (
@@ -382,7 +383,12 @@ class InstanceManager:
                         )
                     )
                 if k < tick.base or k > tick.released:
-                    return  # a late answer (recorded) or a stray one
+                    # a stray one, or a late answer: recorded, and in the ledger when its
+                    # tick closed without it
+                    late = tick.late_answer(k, i, received) if ledger else None
+                    if late is not None:
+                        keep(late_frame(i, k, wall_ns(), late))
+                    return
                 slot = k % window
                 if arrived[slot, i]:
                     return  # a duplicate
@@ -927,7 +933,7 @@ class InstanceManager:
         sent = float(tick.sent[slot])
         answers = answered - sent if self._record_ticks else None
         account = TickAccount(tick.base, float(tick.scheduled[slot]), sent, done, late, answers)
-        tick.base += 1
+        tick.close_base()
         return account
 
     def _account(self, account: TickAccount) -> None:

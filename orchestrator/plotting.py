@@ -10,10 +10,13 @@ From one MCAP file written by the recorder:
   start marked ``o``, end ``s``, the waypoints of the agents (parameters ``waypoints`` or
   ``waypoint``) as ``x`` joined by dotted lines;
 * ``ticks.png`` — the tick latency from ``/orchestrator/ticks`` against experiment time, with
-  the deadline (one period, ``1 / rate_hz``) drawn, and its histogram;
+  the deadline (one period, ``1 / rate_hz``) drawn, and its histogram; late ticks (an answer
+  not in when the next tick was due) marked ``x`` at the time their last answer came (from
+  ``/orchestrator/late``), or ``^`` at the top when some answer never came;
 * ``latency.png`` (``latency=True``) — where each tick's time went, per agent: controller,
   apply, board link, sense and bus (the rest of the answer time), stacked, against time, and
-  the median split per agent.
+  the median split per agent; answers that came after their tick closed
+  (``/orchestrator/late``) included.
 
 Safe-mode entries, lost agents and e-stops (from ``/<agent>/status`` and
 ``/orchestrator/status``) are marked by vertical lines on every time axis. A plot whose data
@@ -126,6 +129,7 @@ class RecordingData:
         outputs: agent -> its ``/<agent>/y`` series.
         inputs: agent -> its ``/<agent>/u`` series.
         ticks: the ``/orchestrator/ticks`` messages (dicts), in order.
+        late: the ``/orchestrator/late`` messages (answers after their tick closed), in order.
         experiment: the ``/experiment`` message, or ``None``.
         events: safe / lost / e-stop events, in time order.
     """
@@ -133,6 +137,7 @@ class RecordingData:
     outputs: dict[str, Series] = field(default_factory=dict)
     inputs: dict[str, Series] = field(default_factory=dict)
     ticks: list[dict[str, Any]] = field(default_factory=list)
+    late: list[dict[str, Any]] = field(default_factory=list)
     experiment: dict[str, Any] | None = None
     events: list[Event] = field(default_factory=list)
 
@@ -155,7 +160,8 @@ class RecordingData:
 
 
 def load_recording(path: str | os.PathLike[str]) -> RecordingData:
-    """Read ``/<agent>/y``, ``/<agent>/u``, statuses, ``/orchestrator/ticks``, ``/experiment``.
+    """Read ``/<agent>/y``, ``/<agent>/u``, statuses, ``/orchestrator/ticks`` and ``/late``,
+    ``/experiment``.
 
     A recording split into segments (``run.mcap``, ``run.1.mcap``, ...) is read whole.
 
@@ -175,6 +181,8 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
                 data.experiment = data.experiment or message
             elif topic.endswith("/status"):
                 _add_event(data.events, topic, message)
+            elif topic == "/orchestrator/late":
+                data.late.append(message)
             elif topic == "/orchestrator/ticks" or _vector_kind(topic) is not None:
                 k = int(message["k"])
                 if (topic, k) in seen:
@@ -211,7 +219,7 @@ def plot_recording(
     path: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
-    xy: Sequence[int | str] = (0, 1),
+    xy: Sequence[int | str] | None = None,
     agents: Iterable[str] | None = None,
     fields: Iterable[str] | None = None,
     latency: bool = False,
@@ -221,7 +229,9 @@ def plot_recording(
     Args:
         path: the MCAP recording.
         out_dir: folder for the PNG files (created if needed).
-        xy: the x and y position entries of ``y`` for the path plot, by index or name.
+        xy: the x and y position entries of ``y`` for the path plot, by index or name
+            (checked: a bad one raises ``PlotError``); ``None``: entries 0 and 1, and no path
+            plot when ``y`` has fewer.
         agents: only these agents (default: all).
         fields: only these entries of ``y`` and ``u``, by name (default: all).
         latency: also write ``latency.png``, where each tick's time went.
@@ -234,7 +244,7 @@ def plot_recording(
     data = load_recording(path)
     if agents is not None:
         _select_agents(data, list(agents))
-    ix, iy = _xy_indices(data, xy)
+    ix, iy = (0, 1) if xy is None else _xy_indices(data, xy)
     positions = dict(data.outputs)  # the path plot needs x and y whatever the fields shown
     if fields is not None:
         _select_fields(data, list(fields))
@@ -445,6 +455,25 @@ def _ticks_figure(data: RecordingData, title: str) -> Figure | None:
     deadline = data.period_s
     figure, (series_axis, histogram_axis) = plt.subplots(2, 1, figsize=(8, 6))
     series_axis.plot(t, milliseconds, linewidth=0.8, label=key)
+    n_late = sum(1 for message in data.ticks if message.get("late"))
+    closed = late_tick_completions(data.ticks, data.late) if key == "completion_s" else {}
+    if closed:  # late ticks closed before every answer came: when their last answer came
+        by_k = {int(m.get("k", -1)): _float(m.get("t")) for m in data.ticks}
+        late_t = np.array([by_k[k] for k in closed])
+        late_ms = np.array(list(closed.values())) * 1e3
+        known = np.isfinite(late_ms)
+        series_axis.scatter(
+            late_t[known], late_ms[known], marker="x", color="tab:red",
+            label=f"late tick closed without an answer: its last answer ({int(known.sum())})",
+        )  # fmt: skip
+        if not known.all():
+            top = max([*milliseconds[np.isfinite(milliseconds)], *late_ms[known], 0.0])
+            top = max(top, (deadline or 0.0) * 1e3) * 1.05
+            series_axis.scatter(
+                late_t[~known], np.full(int((~known).sum()), top), marker="^", color="tab:red",
+                label=f"late tick, an answer never came ({int((~known).sum())})",
+            )  # fmt: skip
+        milliseconds = np.concatenate([milliseconds, late_ms[known]])
     series_axis.set_xlabel("experiment time t [s]")
     series_axis.set_ylabel(f"{key} [ms]")
     series_axis.grid(True, alpha=0.3)
@@ -457,10 +486,12 @@ def _ticks_figure(data: RecordingData, title: str) -> Figure | None:
         label = f"deadline (one period) {deadline * 1e3:g} ms"
         series_axis.axhline(deadline * 1e3, color="tab:red", linestyle="--", label=label)
         histogram_axis.axvline(deadline * 1e3, color="tab:red", linestyle="--", label=label)
+    if deadline is not None or n_late:
         series_axis.legend(loc="best", fontsize="small")
     if finite.size:
         p50, p99 = np.percentile(finite, [50, 99])
         over = "" if deadline is None else f", {int((finite > deadline * 1e3).sum())} over"
+        over += f", {n_late} late" if n_late else ""
         histogram_axis.set_title(
             f"median {p50:.3f} ms, p99 {p99:.3f} ms, max {finite.max():.3f} ms "
             f"({finite.size} ticks{over})"
@@ -483,9 +514,13 @@ def ledger_parts(ticks: list[dict[str, Any]]) -> tuple[tuple[str, str], ...]:
     return LEDGER_PARTS
 
 
-def tick_ledger(ticks: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per agent ``(t [s], parts [s])`` from ``/orchestrator/ticks``: one row per tick the
-    agent answered, one column per :func:`ledger_parts` entry (NaN where not recorded).
+def tick_ledger(
+    ticks: list[dict[str, Any]], late: Sequence[dict[str, Any]] = ()
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per agent ``(t [s], parts [s])`` from ``/orchestrator/ticks`` and the answers that came
+    after their tick closed (``late``, ``/orchestrator/late``): one row per tick the agent
+    answered, in time order, one column per :func:`ledger_parts` entry (NaN where not
+    recorded).
 
     With the gateway parts, an agent's ``link_s`` column holds what its gateway parts do not
     explain: 0 when they are recorded (they sum to ``link_s``), all of ``link_s`` (and 0 in
@@ -496,18 +531,26 @@ def tick_ledger(ticks: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.n
     split = len(keys) > len(LEDGER_PARTS)
     link = keys.index("link_s")
     rows: dict[str, list[tuple[float, list[float]]]] = {}
+
+    def add(agent: str, t: float, entry: dict[str, Any]) -> None:
+        parts = [_float(entry.get(key)) for key in keys]
+        if split:
+            stages = parts[link + 1 : link + 1 + len(GATEWAY_PARTS)]
+            if all(np.isfinite(stages)):
+                parts[link] -= sum(stages)
+            else:
+                parts[link + 1 : link + 1 + len(GATEWAY_PARTS)] = [0.0] * len(stages)
+        rows.setdefault(agent, []).append((t, parts))
+
     for message in ticks:
         t = _float(message.get("t"))
         for agent, entry in (message.get("agents") or {}).items():
             if isinstance(entry, dict):
-                parts = [_float(entry.get(key)) for key in keys]
-                if split:
-                    stages = parts[link + 1 : link + 1 + len(GATEWAY_PARTS)]
-                    if all(np.isfinite(stages)):
-                        parts[link] -= sum(stages)
-                    else:
-                        parts[link + 1 : link + 1 + len(GATEWAY_PARTS)] = [0.0] * len(stages)
-                rows.setdefault(agent, []).append((t, parts))
+                add(agent, t, entry)
+    for entry in late:
+        add(str(entry.get("agent")), _float(entry.get("t")), entry)
+    for items in rows.values():
+        items.sort(key=lambda row: row[0])
     return {
         agent: (np.array([r[0] for r in items]), np.array([r[1] for r in items], dtype=float))
         for agent, items in rows.items()
@@ -515,7 +558,7 @@ def tick_ledger(ticks: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.n
 
 
 def _latency_figure(data: RecordingData, title: str) -> Figure | None:
-    ledger = tick_ledger(data.ticks)
+    ledger = tick_ledger(data.ticks, data.late)
     if data.outputs or data.inputs:
         shown = set(data.outputs) | set(data.inputs)
         ledger = {a: v for a, v in ledger.items() if a in shown}
@@ -554,6 +597,27 @@ def _latency_figure(data: RecordingData, title: str) -> Figure | None:
     figure.suptitle(f"{title}: where each tick's time went (red dashed: deadline)")
     figure.tight_layout()
     return figure
+
+
+def late_tick_completions(
+    ticks: list[dict[str, Any]], late: Sequence[dict[str, Any]]
+) -> dict[int, float]:
+    """Late ticks closed before every answer came (``late`` listed, ``completion_s`` not
+    recorded), by ``k``: their completion [s] with the answers that came after the close
+    (``/orchestrator/late``): ``send_delay_s`` plus the last answer time; ``inf`` when some
+    late agent's answer never came."""
+    answers: dict[tuple[int, str], float] = {
+        (int(m.get("k", -1)), str(m.get("agent"))): _float(m.get("answer_s")) for m in late
+    }
+    completions: dict[int, float] = {}
+    for message in ticks:
+        if not message.get("late") or np.isfinite(_float(message.get("completion_s"))):
+            continue
+        k = int(message.get("k", -1))
+        times = [_float(entry.get("answer_s")) for entry in (message.get("agents") or {}).values()]
+        times += [answers.get((k, str(agent)), np.inf) for agent in message["late"]]
+        completions[k] = _float(message.get("send_delay_s")) + max(times)
+    return completions
 
 
 def tick_latencies(ticks: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray, str] | None:

@@ -25,6 +25,10 @@ Frame layout (little-endian): ``uint8 kind``, ``uint32 body length``, body:
 * ``TELEMETRY`` — ``uint16 agent``, ``int64 log time [ns]``, the agent's telemetry batch as
   sent (:func:`~hilswarm.agents.bus.encode_telemetry_batch`); the recorder writes one message
   per row on ``/<agent>/telemetry/<channel>``, with the channel's field names.
+* ``LATE`` — ``uint16 agent``, ``int64 k``, ``int64 log time [ns]``, ``float64 answer_s``: an
+  agent's ``y_k`` that came after tick ``k`` was closed without it (its answer time after the
+  tick's send [s]); follows that ``y``'s own ``Y`` frame. Recorded on ``/orchestrator/late``
+  with the ledger fields of its report.
 * ``GATEWAY`` — ``int64 log time [ns]``, ``uint16 leaf length``, the key leaf (``stats``,
   ``status``), the XBee gateway's JSON as sent (with ``k``, ``t``, ``values``); recorded on
   ``/gateway/<leaf>``.
@@ -45,11 +49,17 @@ from hilswarm.agents.errors import HilswarmError, RecordingError
 from hilswarm.agents.telemetry import telemetry_topic
 from hilswarm.orchestrator import pose_topic
 from hilswarm.orchestrator.experiment import Experiment
-from hilswarm.orchestrator.recorder import TICKS_SCHEMA, TICKS_TOPIC, Recorder
+from hilswarm.orchestrator.recorder import (
+    LATE_SCHEMA,
+    LATE_TOPIC,
+    TICKS_SCHEMA,
+    TICKS_TOPIC,
+    Recorder,
+)
 
 logger = logging.getLogger(__name__)
 
-Y, TICK, STATUS, EVENT, VECTOR, TELEMETRY, GATEWAY = 1, 2, 3, 4, 5, 6, 7
+Y, TICK, STATUS, EVENT, VECTOR, TELEMETRY, GATEWAY, LATE = 1, 2, 3, 4, 5, 6, 7, 8
 
 _HEAD = struct.Struct("<BI")
 _Y_HEAD = struct.Struct("<BIHqI")
@@ -58,6 +68,7 @@ _AGENT_HEAD = struct.Struct("<BIHq")
 _EVENT_HEAD = struct.Struct("<BIq")
 _VECTOR_HEAD = struct.Struct("<BIHqH")
 _GATEWAY_HEAD = struct.Struct("<BIqH")
+_LATE_FRAME = struct.Struct("<BIHqqd")
 #: Layouts of the bus payloads a Y frame carries, unpacked in place by the recorder: the head
 #: of :func:`~hilswarm.agents.bus.encode_vector` (k, t) and of
 #: :func:`~hilswarm.agents.bus.encode_report` (compute_s, actuate_s, sense_s, link_s, skipped,
@@ -82,6 +93,31 @@ def _floats(n: int) -> struct.Struct:
     if layout is None:
         layout = _FLOATS[n] = struct.Struct(f"<{n}d")
     return layout
+
+
+#: An agent's entry in the tick ledger (``/orchestrator/ticks`` "agents", ``/orchestrator/late``)
+#: [s], in the order of :func:`ledger_times`; then ``skipped`` and ``retries`` (counts).
+LEDGER_FIELDS = ("answer_s", "bus_s", "compute_s", "actuate_s", "link_s", "sense_s")
+#: The entry's gateway stages, after :data:`LEDGER_FIELDS`, for a link through the XBee gateway.
+GATEWAY_LEDGER_FIELDS = ("gateway_bus_s", "gateway_s", "radio_s")
+
+
+def ledger_times(
+    answer: float, timing: tuple[Any, ...] | None
+) -> tuple[tuple[float, ...], int, int]:
+    """An answer's ledger times [s] (:data:`LEDGER_FIELDS`, then :data:`GATEWAY_LEDGER_FIELDS`
+    when its report has the gateway stages), skipped ticks and link retries, from its answer
+    time after the tick's send [s] and its report's timing (``None``: no report, NaN times)."""
+    if timing is None:
+        return (answer, math.nan, math.nan, math.nan, math.nan, math.nan), 0, 0
+    compute, actuate, sense, link, skipped, retries = timing[:6]
+    # the rest of the answer time: bus delivery both ways (and, in lockstep, the wait for the
+    # neighbours' outputs)
+    times = (answer, answer - (compute + actuate + sense + link), compute, actuate, link, sense)
+    if len(timing) > 6:  # through the XBee gateway: the link's bus hops, the gateway, the radio
+        gateway, radio = timing[6:8]
+        times += (link - gateway - radio, gateway, radio)
+    return times, int(skipped), int(retries)
 
 
 #: Agent index of events that concern the orchestrator itself (``/orchestrator/status``).
@@ -126,6 +162,13 @@ def tick_frame(
         len(missing),
     )  # fmt: skip
     return head + indices + answers
+
+
+def late_frame(agent: int, k: int, log_time_ns: int, answer_s: float) -> bytes:
+    """Frame of an answer (``y_k`` of ``agent``) that came after tick ``k`` closed without
+    it, ``answer_s`` [s] after the tick's send."""
+    size = _LATE_FRAME.size - _HEAD.size
+    return _LATE_FRAME.pack(LATE, size, agent, k, log_time_ns, answer_s)
 
 
 def status_frame(agent: int, log_time_ns: int, payload: bytes) -> bytes:
@@ -211,15 +254,14 @@ class FrameRecorder:
         self._quoted = [json.dumps(name) for name in self.names]
         # Per agent, its part of /orchestrator/ticks "agents" with "%" holes for the numbers;
         # with the gateway stages for a tick whose report has them (an xbee:// link).
+        times = ",".join(f'"{field}":%s' for field in LEDGER_FIELDS)
+        gateway = ",".join(f'"{field}":%s' for field in GATEWAY_LEDGER_FIELDS)
         self._agent_templates = [
-            quoted.replace("%", "%%")
-            + ':{"answer_s":%s,"bus_s":%s,"compute_s":%s,"actuate_s":%s,"link_s":%s,'
-            '"sense_s":%s,"skipped":%d,"retries":%d}'
+            quoted.replace("%", "%%") + f':{{{times},"skipped":%d,"retries":%d}}'
             for quoted in self._quoted
         ]
         self._gateway_templates = [
-            template[:-1] + ',"gateway_bus_s":%s,"gateway_s":%s,"radio_s":%s}'
-            for template in self._agent_templates
+            template[:-1] + f",{gateway}}}" for template in self._agent_templates
         ]
         self._y_topics = [f"/{name}/y" for name in self.names]
         self._u_topics = [f"/{name}/u" for name in self.names]
@@ -229,6 +271,7 @@ class FrameRecorder:
         # come before tick k is complete).
         self._timings: list[dict[int, tuple[Any, ...]]] = [{} for _ in self.names]
         self._ticks_registered = False
+        self._late_registered = False
         self._wall = recorder.experiment_clock  # /orchestrator/ticks carries wall_ns
         self._plain_y: set[int] = set()
         # Topics whose field names did not match the values (recorded plain from then on).
@@ -289,6 +332,8 @@ class FrameRecorder:
                     self._vector(frame)
                 elif kind == GATEWAY:
                     self._gateway(frame)
+                elif kind == LATE:
+                    self._late(frame)
                 else:
                     raise RecordingError(f"unknown frame kind {kind}")
             except (HilswarmError, ValueError, struct.error, IndexError) as exc:
@@ -447,7 +492,7 @@ class FrameRecorder:
         missing = ",".join(quoted[j] for j in indices[n_late:])
         # Every number of the message, formatted at once; non-finite ones become null.
         numbers: list[float] = [k * self.dt, scheduled, send_delay, completion]
-        templates = self._agent_templates
+        templates, gateways = self._agent_templates, self._gateway_templates
         answered: list[tuple[str, int, int, int, int]] = []  # template, numbers, counts
         timings = self._timings
         for i, answer in enumerate(answers):
@@ -459,21 +504,10 @@ class FrameRecorder:
             if math.isnan(answer):  # no answer
                 continue
             start = len(numbers)
-            if timing is not None:
-                compute, actuate, sense, link, skipped, retries = timing[:6]
-                # the rest of the answer time: bus delivery both ways (and, in lockstep, the
-                # wait for the neighbours' outputs)
-                bus_s = answer - (compute + actuate + sense + link)
-                numbers += (answer, bus_s, compute, actuate, link, sense)
-                if len(timing) > 6:  # through the XBee gateway: the link's bus hops, the rest
-                    gateway, radio = timing[6:8]
-                    numbers += (link - gateway - radio, gateway, radio)
-                    answered.append((self._gateway_templates[i], start, 9, skipped, retries))
-                    continue
-                answered.append((templates[i], start, 6, skipped, retries))
-            else:
-                numbers += (answer, math.nan, math.nan, math.nan, math.nan, math.nan)
-                answered.append((templates[i], start, 6, 0, 0))
+            times, skipped, retries = ledger_times(answer, timing)
+            numbers += times
+            template = templates[i] if len(times) == len(LEDGER_FIELDS) else gateways[i]
+            answered.append((template, start, len(times), skipped, retries))
         texts = list(map(float.__repr__, numbers))
         if "n" in "".join(texts):
             texts = ["null" if "n" in text else text for text in texts]
@@ -496,6 +530,28 @@ class FrameRecorder:
             TICKS_TOPIC, text.encode(), log_time_ns=log_ns, schema=schema, t=k * self.dt
         )
         self._ticks_registered = True
+
+    def _late(self, frame: bytes) -> None:
+        _, _, i, k, log_ns, answer = _LATE_FRAME.unpack_from(frame)
+        times, skipped, retries = ledger_times(answer, self._timings[i].pop(k, None))
+        fields = LEDGER_FIELDS + GATEWAY_LEDGER_FIELDS
+        message: dict[str, Any] = {"k": k, "t": k * self.dt, "values": [], "agent": self.names[i]}
+        if self._wall:
+            message["wall_ns"] = log_ns
+        message.update(
+            (field, value if math.isfinite(value) else None)
+            for field, value in zip(fields, times, strict=False)
+        )
+        message.update(skipped=skipped, retries=retries)
+        schema = None if self._late_registered else LATE_SCHEMA
+        self.recorder.write_encoded(
+            LATE_TOPIC,
+            json.dumps(message).encode(),
+            log_time_ns=log_ns,
+            schema=schema,
+            t=k * self.dt,
+        )
+        self._late_registered = True
 
     def _status(self, frame: bytes) -> None:
         _, _, i, log_ns = _AGENT_HEAD.unpack_from(frame)

@@ -41,6 +41,8 @@ logger = logging.getLogger(__name__)
 
 EXPERIMENT_TOPIC = "/experiment"
 TICKS_TOPIC = "/orchestrator/ticks"
+#: Answers that came after their tick was closed without them (the ledger's late arrivals).
+LATE_TOPIC = "/orchestrator/late"
 #: Chunk size [bytes] of run recordings: small, so a crash loses little.
 DEFAULT_CHUNK_SIZE = 32 * 1024
 
@@ -88,6 +90,16 @@ STATUS_SCHEMA = _object_schema(
 TICKS_SCHEMA = _object_schema(
     TICKS_TOPIC,
     {"agents": {"type": "object", "description": "per-agent timings of the tick"}},
+)
+LATE_SCHEMA = _object_schema(
+    LATE_TOPIC,
+    {
+        "agent": {"type": "string", "description": "the agent whose y_k came late"},
+        "answer_s": {
+            "type": ["number", "null"],
+            "description": "its answer time after tick k was sent [s], past the tick's close",
+        },
+    },
 )
 EXPERIMENT_SCHEMA = _object_schema(
     EXPERIMENT_TOPIC,

@@ -11,6 +11,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+#: Closed ticks remembered for answers that come after their tick was closed [ticks].
+CLOSED_KEPT = 64
+
 
 class TickAccount(NamedTuple):
     """A closed tick: index, scheduled/sent/done times [s, manager clock], late agents, and
@@ -44,6 +47,11 @@ class TickWindow:
         self.arrived = np.zeros((window, n), dtype=bool)
         self.answered_at = np.full((window, n), np.nan)  # manager clock [s]
         self.lost = np.zeros(n, dtype=bool)
+        # The last CLOSED_KEPT closed ticks, by k % CLOSED_KEPT: k, send time, and the agents
+        # whose answer was not in when it closed (cleared when it comes: once per agent).
+        self._closed_k = np.full(CLOSED_KEPT, -1, dtype=np.int64)
+        self._closed_sent = np.zeros(CLOSED_KEPT)
+        self._closed_waiting = np.zeros((CLOSED_KEPT, n), dtype=bool)
 
     @property
     def k(self) -> int:
@@ -59,6 +67,24 @@ class TickWindow:
         self.count[slot] = 0
         self.arrived[slot] = False
         self.answered_at[slot] = np.nan
+
+    def close_base(self) -> None:
+        """Close the oldest open tick; remember its send time and who had not answered."""
+        k, slot, at = self.base, self.base % self.window, self.base % CLOSED_KEPT
+        self._closed_k[at], self._closed_sent[at] = k, self.sent[slot]
+        np.logical_not(self.arrived[slot] | self.lost, out=self._closed_waiting[at])
+        self.base = k + 1
+
+    def late_answer(self, k: int, i: int, received: float) -> float | None:
+        """Agent ``i``'s y of tick ``k``, closed without it, came at ``received`` [s, manager
+        clock]: its answer time after the tick's send [s]. ``None`` when tick ``k`` is not
+        among the last :data:`CLOSED_KEPT` closed ones, or agent ``i``'s answer was in when
+        it closed or has come since (a duplicate)."""
+        at = k % CLOSED_KEPT
+        if not 0 <= k < self.base or self._closed_k[at] != k or not self._closed_waiting[at, i]:
+            return None
+        self._closed_waiting[at, i] = False
+        return received - float(self._closed_sent[at])
 
     def base_complete(self) -> bool:
         """Every expected answer of the oldest open tick is in."""

@@ -19,10 +19,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--xy",
-        default="0,1",
+        default=None,
         metavar="I,J",
         help="entries of y that are the x and y position for the path plot, by index or name "
-        "(default 0,1; e.g. x,y)",
+        "(e.g. x,y; default 0,1, and no path plot when y has fewer entries)",
     )
     parser.add_argument(
         "--agent", action="append", default=None, help="only this agent (repeatable)"
@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     written = plot_recording(
         args.file,
         out,
-        xy=_xy(args.xy),
+        xy=_xy(args.xy) if args.xy is not None else None,
         agents=args.agent,
         fields=args.field,
         latency=args.latency,

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hilswarm.agents.errors import RecordingError
+from hilswarm.orchestrator import plotting
 from hilswarm.orchestrator.cli import main
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.plotting import load_recording, plot_recording, tick_latencies
@@ -208,3 +209,49 @@ def test_unknown_names_exit_2_listing_the_valid_ones(
         frisbee_recording, tmp_path / "named", xy=("x", "y"), fields=["psi"], latency=True
     )
     assert [p.name for p in written] == ["outputs.png", "paths.png", "ticks.png", "latency.png"]
+
+
+def test_late_ticks_are_timed_with_the_answers_that_came_after_their_close() -> None:
+    """``/orchestrator/late`` completes what a late tick's own message could not say."""
+    ticks = [
+        {"k": 0, "t": 0.0, "completion_s": 0.004, "send_delay_s": 0.0, "late": [],
+         "agents": {"a": {"answer_s": 0.004}, "b": {"answer_s": 0.003}}},
+        {"k": 1, "t": 0.1, "completion_s": None, "send_delay_s": 0.001, "late": ["b"],
+         "agents": {"a": {"answer_s": 0.003}}},
+        {"k": 2, "t": 0.2, "completion_s": None, "send_delay_s": 0.0, "late": ["a", "b"],
+         "agents": {}},
+        {"k": 3, "t": 0.3, "completion_s": 0.12, "send_delay_s": 0.0, "late": ["b"],
+         "agents": {"a": {"answer_s": 0.002}, "b": {"answer_s": 0.12}}},
+    ]  # fmt: skip
+    late = [
+        {"k": 1, "t": 0.1, "agent": "b", "answer_s": 0.13, "compute_s": 0.001},
+        {"k": 2, "t": 0.2, "agent": "a", "answer_s": 0.15},
+    ]
+    completions = plotting.late_tick_completions(ticks, late)
+    # tick 1: b's answer 130 ms after the send, 1 ms after schedule; tick 2: b's never came;
+    # tick 3 is late but complete: its own completion stands
+    assert completions == {1: pytest.approx(0.131), 2: np.inf}
+    t_b, parts_b = plotting.tick_ledger(ticks, late)["b"]
+    assert t_b.tolist() == [0.0, 0.1, 0.3]  # in time order, the late answer included
+    compute = [key for key, _ in plotting.LEDGER_PARTS].index("compute_s")
+    assert parts_b[1, compute] == 0.001
+
+
+def test_a_run_whose_y_has_one_entry_plots_without_a_path_plot(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """No --xy and a y of one entry (a battery voltage): every other figure, exit 0; the
+    default x-y entries are no error. An --xy given is still checked."""
+    experiment = load_experiment(GRAPHS / "consensus_ring.toml")
+    path = tmp_path / "scalar.mcap"
+    with Recorder(path, experiment) as recorder:
+        for k in range(20):
+            t, log = k * experiment.dt, T0 + k * 50_000_000
+            recorder.write_vector("/a0/y", k=k, t=t, values=[7.4 - 0.01 * k], log_time_ns=log)
+            recorder.write_ticks(k=k, t=t, log_time_ns=log, timings={"completion_s": 0.001})
+    out = tmp_path / "plots"
+    assert main(["plot", str(path), "--out", str(out)]) == 0
+    written = capsys.readouterr().out
+    assert "outputs.png" in written and "ticks.png" in written and "paths.png" not in written
+    assert main(["plot", str(path), "--out", str(out), "--xy", "0,1"]) == 2
+    assert "--xy: y has no entry '1'; valid: indices 0..0" in capsys.readouterr().err
