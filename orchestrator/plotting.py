@@ -19,7 +19,9 @@ From one MCAP file written by the recorder:
   (``/orchestrator/late``) included.
 
 Safe-mode entries, lost agents and e-stops (from ``/<agent>/status`` and
-``/orchestrator/status``) are marked by vertical lines on every time axis. A plot whose data
+``/orchestrator/status``) are marked by vertical lines on every time axis; the agents' safe
+entries after the run's stop began (``stopping`` on ``/orchestrator/status``: the run's orderly
+end) are not. A plot whose data
 is absent from the recording is skipped. Truncated recordings are read up to their last
 complete chunk.
 """
@@ -175,12 +177,16 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     data = RecordingData()
     seen: set[tuple[str, int]] = set()
     schemas: dict[str, dict[str, Any]] = {}
+    stopping = False  # the run's stop began: agents going safe from here on is its orderly end
     for segment in existing_segments(path):  # run.mcap, run.1.mcap, ... of a split recording
         for topic, _, message in iter_messages(segment):
             if topic == "/experiment":
                 data.experiment = data.experiment or message
             elif topic.endswith("/status"):
-                _add_event(data.events, topic, message)
+                if topic == "/orchestrator/status" and message.get("state") == "stopping":
+                    stopping = True
+                elif not (stopping and message.get("state") == "safe"):
+                    _add_event(data.events, topic, message)
             elif topic == "/orchestrator/late":
                 data.late.append(message)
             elif topic == "/orchestrator/ticks" or _vector_kind(topic) is not None:

@@ -117,7 +117,7 @@ def test_bad_xy_raises(consensus_recording: Path, tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def frisbee_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A lead/follow-like recording with names, units, a heading past ±π, a safe entry, an
-    e-stop and the tick ledger."""
+    e-stop, the run's stop (every agent safe) and the tick ledger."""
     experiment = load_experiment(GRAPHS / "lead_follow.toml")
     path = tmp_path_factory.mktemp("plot") / "lf.mcap"
     units = {"x": "m", "y": "m", "psi": "rad"}
@@ -157,6 +157,13 @@ def frisbee_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
         recorder.write_status(
             "orchestrator", state="estop", k=30, t=1.5, log_time_ns=T0, detail="button"
         )
+        recorder.write_status(
+            "orchestrator", state="stopping", k=39, t=1.95, log_time_ns=T0, detail="e-stop"
+        )
+        for name in experiment.agent_names:  # the run's orderly end: never marked
+            recorder.write_status(
+                name, state="safe", k=39, t=1.95, log_time_ns=T0, detail="completed"
+            )
     return path
 
 
