@@ -31,6 +31,8 @@ INTERRUPTED = 130
 
 #: Agent status counters listed in the summary when non-zero (reported by the agents, see
 #: docs/running.md): a count, or counts by key or reason.
+#: Agents named in the late-answer line; the rest are counted (one line, however many agents).
+LISTED_AGENTS = 8
 COUNTER_NAMES = ("malformed", "dropped", "skipped", "link_faults", "stale_samples")
 #: How each counter reads in the summary.
 _COUNTER_WORDS = {
@@ -102,6 +104,19 @@ def _counter_texts(counters: dict[str, int | dict[str, int]]) -> tuple[list[str]
     return parts, serious
 
 
+def _late_answers_text(late: dict[str, int]) -> str:
+    """``a=3, b=1`` in the experiment's order; with more than :data:`LISTED_AGENTS` agents the
+    ones with most late answers and a count of the rest (the ledger has every agent's)."""
+    items = list(late.items())
+    if len(items) > LISTED_AGENTS:
+        items.sort(key=lambda item: -item[1])  # stable: experiment order among equal counts
+    text = ", ".join(f"{name}={count}" for name, count in items[:LISTED_AGENTS])
+    rest = items[LISTED_AGENTS:]
+    if rest:
+        text += f" and {sum(c for _, c in rest)} more from {len(rest)} other agents"
+    return text
+
+
 def _ticks(first: int, last: int) -> str:
     return f"tick {first}" if first == last else f"ticks {first}..{last}"
 
@@ -167,7 +182,7 @@ def decide(
         line = (
             f"{summary.late_ticks} of {summary.planned_ticks} ticks late ({fraction:.1%}, "
             f"max_late_fraction {summary.max_late_fraction:.1%}{'; ' + where if where else ''}"
-            "); late answers: " + ", ".join(f"{name}={count}" for name, count in late.items())
+            "); late answers: " + _late_answers_text(late)
         )
         if fraction > summary.max_late_fraction:
             degradations.append(line)

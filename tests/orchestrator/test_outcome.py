@@ -136,3 +136,18 @@ def test_on_recording_failure_is_read_from_the_experiment() -> None:
 def test_stale_drops_alone_are_a_note() -> None:
     result = decide(summary(counters={"a": {"dropped": {"stale": 7}}}))
     assert result.code == CLEAN and "agent a: 7 dropped messages (stale=7)" in result.notes
+
+
+def test_the_late_answers_of_a_large_swarm_fit_one_line() -> None:
+    """48 agents late: the 8 with most late answers by name (ties in experiment order), the
+    rest counted."""
+    late = {f"r{i}": 1 + i % 5 for i in range(48)}  # r4, r9, ...: 5 each
+    text = decide(summary(late=late, late_ticks=60)).text()
+    line = next(line for line in text.splitlines() if "late answers:" in line)
+    listed = line.split("late answers: ")[1]
+    assert listed == (
+        "r4=5, r9=5, r14=5, r19=5, r24=5, r29=5, r34=5, r39=5 "
+        f"and {sum(late.values()) - 40} more from 40 other agents"
+    )
+    few = decide(summary(late={"b": 1, "a": 3}, late_ticks=4)).text()
+    assert "late answers: b=1, a=3" in few  # up to 8 agents: all, in experiment order
