@@ -82,8 +82,11 @@ class Outcome:
         return "\n".join(lines)
 
 
-def _counter_texts(counters: dict[str, int | dict[str, int]]) -> tuple[list[str], bool]:
-    """Texts of an agent's non-zero counters, and whether any of them degrades the run."""
+def _counter_texts(
+    counters: dict[str, int | dict[str, int]], benign: frozenset[str] = BENIGN_COUNTERS
+) -> tuple[list[str], bool]:
+    """Texts of an agent's non-zero counters, and whether any of them (but the ``benign``
+    ones) degrades the run."""
     parts: list[str] = []
     serious = False
     for key in COUNTER_NAMES:
@@ -98,7 +101,7 @@ def _counter_texts(counters: dict[str, int | dict[str, int]]) -> tuple[list[str]
         else:
             total = int(value or 0)
             text = f"{total} {_COUNTER_WORDS[key]}"
-            serious = serious or (total > 0 and key not in BENIGN_COUNTERS)
+            serious = serious or (total > 0 and key not in benign)
         if total:
             parts.append(text)
     return parts, serious
@@ -170,21 +173,24 @@ def decide(
             f"agent {name} degraded {len(events)} times (ticks {ticks}{more}): "
             f"{events[-1].detail or 'link fault'}"
         )
+    # A skipped tick is a late tick of its agent (its y never came): within the tolerance of
+    # late ticks it is a note like them, beyond it a degradation.
+    late_fraction = summary.late_ticks / max(summary.planned_ticks, 1)
+    tolerated = late_fraction <= summary.max_late_fraction
+    benign = BENIGN_COUNTERS | {"skipped"} if tolerated else BENIGN_COUNTERS
     for name, counters in summary.counters.items():
-        parts, serious = _counter_texts(counters)
+        parts, serious = _counter_texts(counters, benign)
         if parts:
             (degradations if serious else notes).append(f"agent {name}: " + ", ".join(parts))
     late = {name: count for name, count in summary.late.items() if count}
     if summary.late_ticks:
-        planned = max(summary.planned_ticks, 1)
-        fraction = summary.late_ticks / planned
         where = summary.late_range()
         line = (
-            f"{summary.late_ticks} of {summary.planned_ticks} ticks late ({fraction:.1%}, "
+            f"{summary.late_ticks} of {summary.planned_ticks} ticks late ({late_fraction:.1%}, "
             f"max_late_fraction {summary.max_late_fraction:.1%}{'; ' + where if where else ''}"
             "); late answers: " + _late_answers_text(late)
         )
-        if fraction > summary.max_late_fraction:
+        if not tolerated:
             degradations.append(line)
         else:
             notes.append(line)

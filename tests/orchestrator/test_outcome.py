@@ -151,3 +151,17 @@ def test_the_late_answers_of_a_large_swarm_fit_one_line() -> None:
     )
     few = decide(summary(late={"b": 1, "a": 3}, late_ticks=4)).text()
     assert "late answers: b=1, a=3" in few  # up to 8 agents: all, in experiment order
+
+
+def test_skipped_ticks_are_late_ticks_judged_by_max_late_fraction() -> None:
+    """An agent that skipped a tick was late for it (its y never came): within the tolerance
+    of late ticks a note, beyond it a degradation."""
+    within = decide(summary(late={"a": 2}, late_ticks=2, counters={"a": {"skipped": 1}}))
+    assert within.code == CLEAN
+    assert any("agent a: 1 ticks skipped" in note for note in within.notes), within.notes
+    beyond = decide(summary(late={"a": 6}, late_ticks=6, counters={"a": {"skipped": 1}}))
+    assert beyond.code == DEGRADED  # 1.5 % > 1 %
+    assert "agent a: 1 ticks skipped" in "\n".join(beyond.degradations)
+    malformed = decide(summary(late={"a": 2}, late_ticks=2, counters={"a": {"skipped": 1,
+                       "malformed": {"y": 1}}}))  # fmt: skip
+    assert malformed.code == DEGRADED  # the other counters degrade as before
