@@ -6,6 +6,7 @@ Real ``hilswarm run`` processes, agents and Zenoh on loopback (``realtime_clock 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 from collections.abc import Iterator
@@ -142,7 +143,10 @@ def test_self_clocked_ticks_without_a_slow_neighbours_output_are_recorded(
     )
     experiment.write_text(text, encoding="utf-8")
     run = start(runs, tmp_path, experiment)
-    assert run.wait(60) == 3, run.output()  # degraded: b skipped ticks
+    # b's skipped ticks are late ticks, within the experiment's max_late_fraction (1.0):
+    # listed as a note, the run clean
+    assert run.wait(60) == 0, run.output()
+    assert re.search(r"note: agent b: \d+ ticks skipped", run.output()), run.output()
     recording = read_recording(run.out)
     ticks = recording["/orchestrator/ticks"]
     assert [m["k"] for m in ticks] == list(range(100))
