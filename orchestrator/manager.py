@@ -731,9 +731,8 @@ class InstanceManager:
         summary = self.summary
         summary.wall_s = clock() - start
         summary.stop_reason = self._stop_reason
-        summary.completion_s = self._completion[: summary.ticks + summary.late_ticks][
-            np.isfinite(self._completion[: summary.ticks + summary.late_ticks])
-        ].tolist()
+        accounted = self._completion[: summary.ticks_run]
+        summary.completion_s = accounted[np.isfinite(accounted)].tolist()
         self._show(tick.base - 1, start, clock())
         self._stop_agents(max(tick.base - 1, 0))
         return summary

@@ -144,7 +144,7 @@ def decide(
         if not failures:
             failures.append("the run did not start")
         return Outcome(INTERRUPTED if interrupted else FAILED, failures)
-    last_tick = max(summary.ticks + summary.late_ticks - 1, 0)
+    last_tick = max(summary.ticks_run - 1, 0)
     if summary.failed:
         failures.append(summary.stop_reason)
     for name, event in summary.safe.items():

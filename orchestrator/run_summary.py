@@ -54,7 +54,8 @@ class RunSummary:
     Attributes:
         experiment: experiment name.
         mode: ``lockstep`` or ``realtime``.
-        ticks: ticks completed (every live agent answered).
+        ticks: ticks completed on time (every live agent answered; realtime: before the next
+            tick was due); the late ones are :attr:`late_ticks`.
         planned_ticks: ticks the experiment asked for.
         wall_s: wall-clock length of the ticking phase [s].
         stop_reason: why the run ended (``"completed"``, ``"interrupted"``, ...).
@@ -118,9 +119,15 @@ class RunSummary:
         return f"at tick {first}" if first == last else f"between ticks {first} and {last}"
 
     @property
+    def ticks_run(self) -> int:
+        """Ticks accounted, on time or late."""
+        return self.ticks + self.late_ticks
+
+    @property
     def speed(self) -> float:
-        """Experiment time per wall-clock time (lockstep speed-up; ~1 in realtime)."""
-        return 0.0 if self.wall_s <= 0 else self.ticks * self.dt_s / self.wall_s
+        """Experiment time per wall-clock time (lockstep speed-up; ~1 in realtime, late ticks
+        included: they ran)."""
+        return 0.0 if self.wall_s <= 0 else self.ticks_run * self.dt_s / self.wall_s
 
     def completion_percentiles(self) -> tuple[float, float]:
         """(p50, p99) of tick completion times [s] over every tick that was due.
@@ -138,8 +145,9 @@ class RunSummary:
         """A few human lines (the degradations are listed by :mod:`.outcome`)."""
         p50, p99 = self.completion_percentiles()
         lines = [
-            f"experiment {self.experiment!r} ({self.mode}): {self.ticks}/{self.planned_ticks} "
-            f"ticks in {self.wall_s:.2f} s wall clock ({self.speed:.1f}x real time); "
+            f"experiment {self.experiment!r} ({self.mode}): {self.ticks_run}/{self.planned_ticks} "
+            f"ticks{f' ({self.late_ticks} late)' if self.late_ticks else ''} in "
+            f"{self.wall_s:.2f} s wall clock ({self.speed:.1f}x real time); "
             f"stopped: {self.stop_reason}",
             f"tick completion p50 {_ms(p50)}, p99 {_ms(p99)}; late ticks {self.late_ticks}"
             + (f" ({self.late_range()})" if self.late_ticks else ""),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from hilswarm.orchestrator.outcome import CLEAN, DEGRADED, FAILED, INTERRUPTED, decide
 from hilswarm.orchestrator.run_summary import AgentEvent, RecordingReport, RunSummary
 
@@ -165,3 +166,16 @@ def test_skipped_ticks_are_late_ticks_judged_by_max_late_fraction() -> None:
     malformed = decide(summary(late={"a": 2}, late_ticks=2, counters={"a": {"skipped": 1,
                        "malformed": {"y": 1}}}))  # fmt: skip
     assert malformed.code == DEGRADED  # the other counters degrade as before
+
+
+def test_the_summary_counts_late_ticks_as_run_in_ticks_and_speed() -> None:
+    """99 of 100 ticks late at 50 Hz in 2 s: 100 ticks ran (99 late), about real time; not
+    '1/100 ticks, 0.0x real time'."""
+    run = summary(ticks=1, late_ticks=99, planned_ticks=100, wall_s=2.0, dt_s=0.02)
+    assert run.ticks_run == 100
+    assert run.speed == pytest.approx(1.0)
+    assert run.text().startswith(
+        "experiment 'toy' (realtime): 100/100 ticks (99 late) in 2.00 s wall clock (1.0x real time)"
+    )
+    clean = summary(wall_s=20.0, dt_s=0.05)
+    assert clean.text().startswith("experiment 'toy' (realtime): 400/400 ticks in 20.00 s")
