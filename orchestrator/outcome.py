@@ -223,7 +223,11 @@ def decide(
         "stop requested"
     )
     if summary.ticks == 0 and summary.planned_ticks > 0 and not interrupted:
-        failures.append("no tick completed")
+        failures.append(
+            f"no tick completed on time ({summary.late_ticks} late)"
+            if summary.late_ticks
+            else "no tick completed"
+        )
     elif not complete and not failures and not interrupted and summary.estop_tick is None:
         degradations.append(
             f"stopped at tick {last_tick} of {summary.planned_ticks}: {summary.stop_reason}"

@@ -177,5 +177,7 @@ def test_the_summary_counts_late_ticks_as_run_in_ticks_and_speed() -> None:
     assert run.text().startswith(
         "experiment 'toy' (realtime): 100/100 ticks (99 late) in 2.00 s wall clock (1.0x real time)"
     )
+    never = decide(summary(ticks=0, late_ticks=100, planned_ticks=100, late={"a": 100}))
+    assert never.code == FAILED and never.failures == ["no tick completed on time (100 late)"]
     clean = summary(wall_s=20.0, dt_s=0.05)
     assert clean.text().startswith("experiment 'toy' (realtime): 400/400 ticks in 20.00 s")
