@@ -1130,12 +1130,16 @@ class InstanceManager:
                 stopped.add(item[1])
         self._flush_records()
 
+    def states_now(self) -> dict[str, str]:
+        """Each agent's lifecycle state as it last reported it (a copy; any thread)."""
+        with self._lock:
+            return dict(self.agent_states)
+
     def _show(self, k: int, start: float, now: float) -> None:
         if self._display is None:
             return
         elapsed = max(now - start, 1e-9)
-        with self._lock:
-            states = dict(self.agent_states)
+        states = self.states_now()
         self._display.update(
             StatusSnapshot(
                 experiment=self.experiment.name,

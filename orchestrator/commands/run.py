@@ -365,7 +365,15 @@ def _run(
                 f"waiting for remote agent {name}"
                 + (f": hilswarm agent --credentials {where} ..." if where else "")
             )
-        manager.wait_for_agents(args.start_timeout, check=launcher.check)
+
+        def check() -> None:  # while waiting: agents that fail, and their states for `ps`
+            launcher.check()
+            states = manager.states_now()
+            if any(record.entry.agents.get(name) != state for name, state in states.items()):
+                record.entry.agents.update(states)
+                record.write()
+
+        manager.wait_for_agents(args.start_timeout, check=check)
         recorder.wait_ready()
         recorder.publish(replace=args.force)  # the run begins: the recording takes its name
         record.entry.state = "running"

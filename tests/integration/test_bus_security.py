@@ -523,3 +523,32 @@ def test_ps_without_runs_and_stale_entries(tmp_path: Path) -> None:
         [*CLI, "ps"], capture_output=True, text=True, timeout=60, env=env, check=False
     )
     assert text.stdout.strip() == "no running experiments"
+
+
+def test_ps_shows_the_local_agents_while_the_run_waits_for_a_remote_one(
+    tmp_path: Path, runs: list[RunProcess]
+) -> None:
+    """``--remote d`` never joins: while the run waits, ``ps`` shows a, b and c as they
+    reported (armed), d still starting; Ctrl-C then ends the wait (exit 130)."""
+    run = RunProcess(
+        tmp_path, toy_run(tmp_path), "--no-check", "--listen", "tls/127.0.0.1:0",
+        "--remote", "d", "--start-timeout", "120",
+    )  # fmt: skip
+    runs.append(run)
+
+    def states() -> dict[str, str]:
+        listed = subprocess.run(
+            [*CLI, "ps", "--json"], capture_output=True, text=True, timeout=60, env=run.env,
+            check=False,
+        )  # fmt: skip
+        assert listed.returncode == 0, listed.stderr
+        rows = json.loads(listed.stdout)["runs"]
+        return rows[0]["agents"] if rows else {}
+
+    wait_for(
+        lambda: [states().get(name) for name in AGENTS] == ["armed", "armed", "armed", "starting"],
+        60,
+        "a, b, c armed and d starting in hilswarm ps",
+    )
+    run.process.send_signal(signal.SIGINT)
+    assert run.wait(60) == 130, run.output()
