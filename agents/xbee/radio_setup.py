@@ -73,6 +73,7 @@ def scan(
     """
     from digi.xbee.exception import XBeeException  # noqa: PLC0415
 
+    progress(f"asking the radio at {port} ({baud} baud)...")  # a silent port takes ~8 s
     device = _open(port, baud)
     try:
         progress(
@@ -125,6 +126,7 @@ def setup(
         raise RadioSetupError(f"channel {channel:#x} is not an 802.15.4 channel (0x0B-0x1A)")
     if not 0 <= pan_id <= 0xFFFF:
         raise RadioSetupError(f"PAN id {pan_id:#x} is not 0-0xFFFF")
+    progress(f"asking the radio at {port} ({baud} baud)...")  # a silent port takes ~8 s
     device = _open(port, baud)
     try:
         own = int(str(device.get_64bit_addr()), 16)

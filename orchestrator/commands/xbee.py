@@ -9,7 +9,8 @@ Examples::
 ``scan`` lists every radio the coordinator hears (64-bit address, node id, RSSI). ``setup``
 configures the robots' radios over the air (transparent mode, PAN id, channel, destination =
 the coordinator) and then the coordinator (API mode, PAN id, channel, baud); ``--all`` takes
-every radio a scan finds. Exit status: 0 done, 1 a radio did not answer, 2 bad input.
+every radio a scan finds. Exit status: 0 done, 1 a radio did not answer, 2 bad input (e.g. a
+serial device that does not exist: the message lists the ports present).
 """
 
 from __future__ import annotations
@@ -56,12 +57,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Scan or set up."""
+    from hilswarm.agents.link.serial_board import validate_url  # noqa: PLC0415
     from hilswarm.agents.xbee import radio_setup  # noqa: PLC0415 - digi-xbee only here
 
     def progress(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
     try:
+        validate_url(args.port)  # a device path that does not exist: bad input, said so
         if args.action == "scan":
             nodes = radio_setup.scan(
                 args.port, args.baud, timeout_s=args.timeout, progress=progress

@@ -3,6 +3,7 @@ coordinator's pty (digi-xbee cannot tell it from a radio)."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -62,8 +63,22 @@ def test_setup_reports_a_silent_robot_radio(
 def test_no_coordinator_is_a_clear_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["xbee", "scan", "--port", str(tmp_path / "ttyUSB9")]) == 1
-    assert "no XBee in API mode answers" in capsys.readouterr().err
+    """A port with no radio in API mode behind it: exit 1, saying so; a device that does not
+    exist: bad input (exit 2), listing the serial ports present."""
+    controller, port = os.openpty()  # a serial port on which nothing answers
+    name = os.ttyname(port)
+    try:
+        assert main(["xbee", "scan", "--port", name, "--timeout", "1"]) == 1
+    finally:
+        os.close(controller)
+        os.close(port)
+    error = capsys.readouterr().err
+    assert error.startswith(f"asking the radio at {name} (115200 baud)...\n"), error
+    assert "no XBee in API mode answers" in error, error
+    assert main(["xbee", "scan", "--port", str(tmp_path / "ttyUSB9")]) == 2
+    error = capsys.readouterr().err
+    assert "does not exist" in error, error
+    assert "serial ports present" in error or "no serial ports" in error, error
 
 
 def test_gateway_command_without_xbee_agents(capsys: pytest.CaptureFixture[str]) -> None:
