@@ -107,6 +107,14 @@ def _counter_texts(
     return parts, serious
 
 
+def _agents_text(names: list[str]) -> str:
+    """``agent a``; ``agents a, b``; past :data:`LISTED_AGENTS` names, ``and N more``."""
+    if len(names) == 1:
+        return f"agent {names[0]}"
+    more = len(names) - LISTED_AGENTS
+    return f"agents {', '.join(names[:LISTED_AGENTS])}" + (f" and {more} more" if more > 0 else "")
+
+
 def _late_answers_text(late: dict[str, int]) -> str:
     """``a=3, b=1`` in the experiment's order; with more than :data:`LISTED_AGENTS` agents the
     ones with most late answers and a count of the rest (the ledger has every agent's)."""
@@ -178,10 +186,14 @@ def decide(
     late_fraction = summary.late_ticks / max(summary.planned_ticks, 1)
     tolerated = late_fraction <= summary.max_late_fraction
     benign = BENIGN_COUNTERS | {"skipped"} if tolerated else BENIGN_COUNTERS
+    # Agents with the same counters share a line (a large swarm's "1 ticks skipped" each).
+    same: dict[tuple[str, bool], list[str]] = {}
     for name, counters in summary.counters.items():
         parts, serious = _counter_texts(counters, benign)
         if parts:
-            (degradations if serious else notes).append(f"agent {name}: " + ", ".join(parts))
+            same.setdefault((", ".join(parts), serious), []).append(name)
+    for (text, serious), names in same.items():
+        (degradations if serious else notes).append(f"{_agents_text(names)}: {text}")
     late = {name: count for name, count in summary.late.items() if count}
     if summary.late_ticks:
         where = summary.late_range()

@@ -181,3 +181,16 @@ def test_the_summary_counts_late_ticks_as_run_in_ticks_and_speed() -> None:
     assert never.code == FAILED and never.failures == ["no tick completed on time (100 late)"]
     clean = summary(wall_s=20.0, dt_s=0.05)
     assert clean.text().startswith("experiment 'toy' (realtime): 400/400 ticks in 20.00 s")
+
+
+def test_agents_with_the_same_counters_share_a_line() -> None:
+    counters = {f"r{i}": {"skipped": 1} for i in range(12)}
+    counters["r3"] = {"skipped": 2}
+    counters["r5"] = {"malformed": {"y": 1}}
+    result = decide(summary(late={"r0": 14}, late_ticks=14, counters=counters))
+    assert result.code == DEGRADED  # 3.5 % late: skipped ticks degrade too
+    assert (
+        "agents r0, r1, r2, r4, r6, r7, r8, r9 and 2 more: 1 ticks skipped" in result.degradations
+    )
+    assert "agent r3: 2 ticks skipped" in result.degradations
+    assert "agent r5: 1 malformed messages (y=1)" in result.degradations
