@@ -82,11 +82,8 @@ class Outcome:
         return "\n".join(lines)
 
 
-def _counter_texts(
-    counters: dict[str, int | dict[str, int]], benign: frozenset[str] = BENIGN_COUNTERS
-) -> tuple[list[str], bool]:
-    """Texts of an agent's non-zero counters, and whether any of them (but the ``benign``
-    ones) degrades the run."""
+def _counter_texts(counters: dict[str, int | dict[str, int]]) -> tuple[list[str], bool]:
+    """Texts of an agent's non-zero counters, and whether any of them degrades the run."""
     parts: list[str] = []
     serious = False
     for key in COUNTER_NAMES:
@@ -101,7 +98,7 @@ def _counter_texts(
         else:
             total = int(value or 0)
             text = f"{total} {_COUNTER_WORDS[key]}"
-            serious = serious or (total > 0 and key not in benign)
+            serious = serious or (total > 0 and key not in BENIGN_COUNTERS)
         if total:
             parts.append(text)
     return parts, serious
@@ -115,10 +112,10 @@ def _agents_text(names: list[str]) -> str:
     return f"agents {', '.join(names[:LISTED_AGENTS])}" + (f" and {more} more" if more > 0 else "")
 
 
-def _late_answers_text(late: dict[str, int]) -> str:
+def _counts_text(counts: dict[str, int]) -> str:
     """``a=3, b=1`` in the experiment's order; with more than :data:`LISTED_AGENTS` agents the
-    ones with most late answers and a count of the rest (the ledger has every agent's)."""
-    items = list(late.items())
+    ones with the highest counts and a count of the rest (the record has every agent's)."""
+    items = list(counts.items())
     if len(items) > LISTED_AGENTS:
         items.sort(key=lambda item: -item[1])  # stable: experiment order among equal counts
     text = ", ".join(f"{name}={count}" for name, count in items[:LISTED_AGENTS])
@@ -181,26 +178,32 @@ def decide(
             f"agent {name} degraded {len(events)} times (ticks {ticks}{more}): "
             f"{events[-1].detail or 'link fault'}"
         )
-    # A skipped tick is a late tick of its agent (its y never came): within the tolerance of
-    # late ticks it is a note like them, beyond it a degradation.
     late_fraction = summary.late_ticks / max(summary.planned_ticks, 1)
     tolerated = late_fraction <= summary.max_late_fraction
-    benign = BENIGN_COUNTERS | {"skipped"} if tolerated else BENIGN_COUNTERS
-    # Agents with the same counters share a line (a large swarm's "1 ticks skipped" each).
+    # Agents with the same counters share a line; skipped ticks have one line of their own.
     same: dict[tuple[str, bool], list[str]] = {}
+    skipped: dict[str, int] = {}
     for name, counters in summary.counters.items():
-        parts, serious = _counter_texts(counters, benign)
+        skipped[name] = int(counters.get("skipped") or 0)
+        others = {key: value for key, value in counters.items() if key != "skipped"}
+        parts, serious = _counter_texts(others)
         if parts:
             same.setdefault((", ".join(parts), serious), []).append(name)
     for (text, serious), names in same.items():
         (degradations if serious else notes).append(f"{_agents_text(names)}: {text}")
+    skipped = {name: count for name, count in skipped.items() if count}
+    if skipped:
+        # A skipped tick is a late tick of its agent (its y never came): within the tolerance
+        # of late ticks a note like them, beyond it a degradation.
+        line = f"ticks skipped by agents that fell behind: {_counts_text(skipped)}"
+        (notes if tolerated else degradations).append(line)
     late = {name: count for name, count in summary.late.items() if count}
     if summary.late_ticks:
         where = summary.late_range()
         line = (
             f"{summary.late_ticks} of {summary.planned_ticks} ticks late ({late_fraction:.1%}, "
             f"max_late_fraction {summary.max_late_fraction:.1%}{'; ' + where if where else ''}"
-            "); late answers: " + _late_answers_text(late)
+            "); late answers: " + _counts_text(late)
         )
         if not tolerated:
             degradations.append(line)
