@@ -29,10 +29,11 @@ BAD_INPUT = 2
 DEGRADED = 3
 INTERRUPTED = 130
 
+#: Agents named in one line of the summary (late answers, skipped ticks, agents sharing
+#: counters); the rest are counted: one line, however many agents.
+LISTED_AGENTS = 8
 #: Agent status counters listed in the summary when non-zero (reported by the agents, see
 #: docs/running.md): a count, or counts by key or reason.
-#: Agents named in the late-answer line; the rest are counted (one line, however many agents).
-LISTED_AGENTS = 8
 COUNTER_NAMES = ("malformed", "dropped", "skipped", "link_faults", "stale_samples")
 #: How each counter reads in the summary.
 _COUNTER_WORDS = {
