@@ -162,8 +162,8 @@ class RecordingData:
 
 
 def load_recording(path: str | os.PathLike[str]) -> RecordingData:
-    """Read ``/<agent>/y``, ``/<agent>/u``, statuses, ``/orchestrator/ticks`` and ``/late``,
-    ``/experiment``.
+    """Read ``/<agent>/y``, ``/<agent>/u``, statuses, ``/orchestrator/ticks``,
+    ``/orchestrator/late`` and ``/experiment``.
 
     A recording split into segments (``run.mcap``, ``run.1.mcap``, ...) is read whole.
 
