@@ -13,7 +13,7 @@
     # position_std_m = 0.002, yaw_std_rad = 0.02   # Kalman measurement noise
     # tick_lock = true      # realtime ticks in step with the frames (docs/mocap.md)
     # tick_lag_ms = 2.0     # a tick this long after its frame reaches the host [ms]
-    # pose_wait_ms = 5.0    # a sense waits at most this long for its frame's pose [ms] (0)
+    # pose_wait_ms = 1.5    # a sense waits at most this long for an overdue pose [ms] (0)
 
     [mocap.sim]             # system = "sim" only: what the simulated cameras do
     noise_std_m = 0.002
@@ -96,9 +96,9 @@ class MocapSettings:
     @property
     def pose_wait_s(self) -> float:
         """Bound on a sense's wait for the pose of its tick's frame [s] (``pose_wait_ms``,
-        :mod:`.pose_source` "Waiting for the tick's frame"); 0 (the default: measured to help
-        at 100 Hz frames and to hurt at 240 Hz, docs/mocap.md) or without ``tick_lock``:
-        never waits."""
+        :mod:`.pose_source` "Waiting for the tick's frame"); 0 (the default: measured at
+        240 Hz to help with up to a few agents per core and to hurt with 8 per core,
+        docs/mocap.md) or without ``tick_lock``: never waits."""
         if not self.tick_lock or self.pose_wait_ms is None:
             return 0.0
         return self.pose_wait_ms * 1e-3

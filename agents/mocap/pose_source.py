@@ -32,12 +32,14 @@ the wait for the tick), and how long this sense waited for its frame's pose [s] 
 **Waiting for the tick's frame.** With the realtime ticks locked to the frames (``[mocap]
 tick_lock``, docs/mocap.md) each tick is due a short lag after a frame reached the host; its
 pose may still be on its way to this agent (the bus delivery's tail is longer than the lag).
-Then the newest pose here is the previous frame's, more than half a frame period old, and
-using it would add a whole frame period of latency. So, given ``pose_wait_s`` > 0, a sense whose
-newest pose arrived more than half a frame period ago waits for the next frame's pose, at most
+Then the newest pose here is the previous frame's, and using it would add a whole frame period
+of latency. So, given ``pose_wait_s`` > 0, a sense whose newest pose arrived more than one frame
+period ago (the next frame's pose is overdue: poses come one period apart) waits for it, at most
 ``pose_wait_s`` (``[mocap] pose_wait_ms``; 0 by default: docs/mocap.md has the measured
-trade-off), and
-then uses the newest pose it has. Only arrival times on this agent's own clock are compared,
+trade-off), and then uses the newest pose it has. A sense whose newest pose came less than a
+period ago never waits, however late the sense itself is: that pose is its frame's (waiting
+for the next frame instead, as a half-period rule did, made late senses later still and their
+poses older). Only arrival times on this agent's own clock are compared,
 so it holds for agents on other hosts too. The wait runs on the agent's worker thread (never
 a bus thread); when frames stop, each sense waits at most ``pose_wait_s`` until tracking is
 declared lost (``hold_frames``).
@@ -301,14 +303,14 @@ class MocapPoseSource:
 
     def _await_frame(self) -> float:
         """Wait, bounded by :attr:`pose_wait_s`, for the pose of the tick's frame when the
-        newest one arrived over half a frame period ago (module docstring). Returns the time
+        newest one arrived over one frame period ago (module docstring). Returns the time
         waited [s]; runs on the agent's worker thread."""
         latest = self._latest
         if latest is None or self.pose_wait_s <= 0.0:
             return 0.0
         start = self._clock()
-        if start - latest[1] <= 0.5 * self.frame_period_s:
-            return 0.0  # this frame's pose is in
+        if start - latest[1] <= self.frame_period_s:
+            return 0.0  # no newer frame's pose is overdue
         frame, deadline = latest[0].frame, start + self.pose_wait_s
         for _ in range(_POSE_WAIT_WAKES):
             self._fresh.clear()

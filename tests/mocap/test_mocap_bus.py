@@ -57,6 +57,7 @@ class Rig:
         hold_frames: int,
         neighbours: dict[str, str] | None = None,
         pose_wait_s: float = 0.0,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.sim = QtmSimulator(sim)
         self.sim.start()
@@ -75,7 +76,7 @@ class Rig:
         self.source = MocapPoseSource(
             sim.bodies[0], hold_frames=hold_frames, hold_s=settings.hold_s,
             start_timeout_s=10.0, on_lost=self.lost.append,
-            frame_period_s=1.0 / sim.rate_hz, pose_wait_s=pose_wait_s,
+            frame_period_s=1.0 / sim.rate_hz, pose_wait_s=pose_wait_s, clock=clock,
         )  # fmt: skip
         self.source.neighbours = dict(neighbours or {})
         self.telemetry = Telemetry()
@@ -195,33 +196,57 @@ def test_a_controller_that_asks_gets_its_neighbours_poses(router: list[str]) -> 
         rig.close()
 
 
-def test_a_sense_waits_bounded_for_the_pose_of_its_frame(router: list[str]) -> None:
-    """``pose_wait_s``: a sense whose newest pose is over half a frame period old waits for the
-    next frame's pose (and gets it), at most ``pose_wait_s``; with no frame coming it gives up
-    at the bound and uses the newest pose it has."""
-    period, bound = 0.1, 0.08  # 10 Hz frames: a frame's pose is due within the bound
-    rig = Rig(router, SimSettings(bodies=("f1",), rate_hz=10.0), hold_frames=50, pose_wait_s=bound)
+def test_a_sense_waits_bounded_for_an_overdue_pose(router: list[str]) -> None:
+    """``pose_wait_s``: a sense whose newest pose arrived over one frame period ago (the next
+    frame's is overdue) waits for it (and gets it), at most ``pose_wait_s``; one whose newest
+    pose is younger than a period never waits, however late in the period it comes; with no
+    frame coming it gives up at the bound and uses the newest pose it has.
+
+    The source's clock is this machine's plus an offset the test sets: its poses' arrival
+    stamps and its "now" both move with it, so the age a sense sees is set exactly."""
+    period, bound = 0.1, 0.08  # 10 Hz frames
+    offset = [0.0]
+    rig = Rig(
+        router, SimSettings(bodies=("f1",), rate_hz=10.0), hold_frames=50, pose_wait_s=bound,
+        clock=lambda: time.monotonic() + offset[0],
+    )  # fmt: skip
     source = rig.source
+
+    def seen_age(age: float) -> None:  # the newest pose looks ``age`` [s] old from now on
+        offset[0] += age - (source._clock() - source._latest[1])
+
+    def newest_is_old() -> bool:  # over half a period, really: the next frame is near
+        latest = source._latest
+        return latest is not None and source._clock() - latest[1] > 0.5 * period
+
     try:
         rig.sim.set_truth("f1", np.zeros(6))
         source.wait_first()
 
-        def newest_is_old() -> bool:
-            latest = source._latest
-            return latest is not None and time.monotonic() - latest[1] > 0.5 * period
-
+        # Younger than a period, late in it (0.9 periods): no wait, the newest pose is used.
         wait_for(newest_is_old, "the newest pose to be over half a frame period old")
         frame = source._latest[0].frame
+        seen_age(0.9 * period)
+        assert np.all(np.isfinite(source.pose()))
+        assert source.pose_waits == source.pose_wait_timeouts == 0
+        source.record(0, 0.0)
+        assert rig.telemetry["mocap"].field("pose_wait_s")[-1] == 0.0
+        assert rig.telemetry["mocap"].field("frame")[-1] >= frame
+
+        # Over a period old: the next frame's pose is overdue; the sense waits and gets it.
+        wait_for(newest_is_old, "the newest pose to be over half a frame period old")
+        frame = source._latest[0].frame
+        seen_age(1.2 * period)
         assert np.all(np.isfinite(source.pose()))
         assert source._latest[0].frame > frame  # it waited for the next frame's pose
         assert source.pose_waits == 1 and source.pose_wait_timeouts == 0
-        source.record(0, 0.0)
+        source.record(1, 0.1)
         waited = rig.telemetry["mocap"].field("pose_wait_s")[-1]  # that sense's wait [s]
         assert 0.0 < waited <= bound + 0.05  # bounded (the slack: a loaded machine's wake-up)
 
         rig.process.stop()  # no more frames: a sense gives up at the bound
         rig.thread.join(10.0)
-        wait_for(newest_is_old, "the newest pose to be over half a frame period old")
+        seen_age(1.2 * period)
         began = time.monotonic()
         assert np.all(np.isfinite(source.pose()))  # within hold_s: the newest pose, held
         assert time.monotonic() - began >= bound
