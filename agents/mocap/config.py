@@ -97,7 +97,7 @@ class MocapSettings:
     def pose_wait_s(self) -> float:
         """Bound on a sense's wait for the pose of its tick's frame [s] (``pose_wait_ms``,
         :mod:`.pose_source` "Waiting for the tick's frame"); 0 (the default: measured at
-        240 Hz to help with up to a few agents per core and to hurt with 8 per core,
+        240 Hz to help with up to four agents per core and to hurt with six or more,
         docs/mocap.md) or without ``tick_lock``: never waits."""
         if not self.tick_lock or self.pose_wait_ms is None:
             return 0.0
