@@ -46,6 +46,7 @@ carried in every message). Target: p99 under one frame period, for 16 bodies at 
     python benchmarks/mocap_latency.py            # 16 agents, 100 and 240 Hz, 10 s each
     python benchmarks/mocap_latency.py --short    # CI size: 4 agents, 2 s per rate (< 60 s)
     python benchmarks/mocap_latency.py --free     # ticks free of the frames, for comparison
+    python benchmarks/mocap_latency.py --rates 240 --agents 4 8 16   # by agents per core
 
 Prints the 1-minute load at the start, one line per rate with the verdict, and one JSON line
 per rate (``{"rate_hz": ...}``; keys in docs/mocap.md, "Benchmark"); exit status 0 when every
@@ -420,9 +421,10 @@ def main(argv: list[str] | None = None) -> int:
         "--agents",
         "--bodies",
         type=int,
+        nargs="+",
         default=None,
         dest="agents",
-        help="agents, one rigid body each (default 16; --short 4)",
+        help="agents, one rigid body each; several: each count in turn (default 16; --short 4)",
     )
     parser.add_argument(
         "--rates",
@@ -467,13 +469,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     seconds = args.seconds if args.seconds is not None else (2.0 if args.short else 10.0)
-    agents = args.agents if args.agents is not None else (4 if args.short else 16)
+    counts = args.agents if args.agents is not None else [4 if args.short else 16]
+    if any(n < 1 for n in counts):
+        parser.error(f"--agents must be >= 1, got {counts}")
     one, five, fifteen = os.getloadavg()
     print(f"load at start: {one:.2f} {five:.2f} {fifteen:.2f} (1/5/15 min), "
           f"{os.cpu_count()} cores; latency on CLOCK_MONOTONIC (the simulator's frame time "
           f"stamp and the agent's sense, one machine clock)")  # fmt: skip
     failed = False
-    for rate in args.rates:
+    for agents, rate in ((n, r) for n in counts for r in args.rates):
         result = measure_controller(
             rate, agents, seconds, args.control_rate, locked=not args.free, lag_ms=args.lag_ms,
             pose_wait_ms=args.pose_wait_ms,
