@@ -58,22 +58,11 @@ from hilswarm.agents.tick_engine import is_warmup, start_lead
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
 from hilswarm.orchestrator.outcome import COUNTER_NAMES
-from hilswarm.orchestrator.record_stream import (
-    ORCHESTRATOR,
-    FrameRecorder,
-    RecordSink,
-    event_frame,
-    gateway_frame,
-    late_frame,
-    status_frame,
-    telemetry_frame,
-    tick_frame,
-    vector_frame,
-    y_frame,
-)
+from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink, RecordWriter
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.run_summary import AgentEvent, RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
 from hilswarm.orchestrator.tick_window import TickAccount, TickWindow
 
 logger = logging.getLogger(__name__)
@@ -219,8 +208,10 @@ class InstanceManager:
         self.stop_timeout_s = stop_timeout_s
         self._display = display
         if isinstance(recorder, Recorder):
-            recorder = FrameRecorder(recorder, experiment)
+            recorder = StreamRecorder(recorder, experiment)
         self._sink: RecordSink | None = recorder
+        # The record stream (under _lock): what the bus brought, for the sink.
+        self._records = RecordWriter(self.names) if recorder is not None else None
         self._record_ticks = record_ticks and recorder is not None
         self._flush_period_s = flush_period_s
         self._describe_process = describe_process
@@ -236,8 +227,7 @@ class InstanceManager:
             self.window = 2
         self._step_k = 0  # self-clocked: the tick whose due time is the next step
         self._tick = TickWindow(self.n, self.window)
-        self._frames: list[bytes] = []
-        self._frames_since = -1  # the tick at which _frames began gathering (-1: unknown)
+        self._records_since = -1  # the tick at which the batch began gathering (-1: unknown)
         self.agent_states: dict[str, str] = {}
         # Rare events for the ticking thread: liveliness, control, stop, safe, lockstep done.
         self._events: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
@@ -352,7 +342,8 @@ class InstanceManager:
     def _y_callback(self, i: int) -> Callable[[zenoh.Sample], None]:
         """The callback of agent ``i``'s y key (runs on a Zenoh thread: keep it short)."""
         clock, wall_ns, lock, tick = self._clock, self._wall_ns, self._lock, self._tick
-        keep, record, ledger = self._frames.append, self._sink is not None, self._record_ticks
+        records, ledger = self._records, self._record_ticks
+        record = records is not None
         lockstep = not self._realtime
         put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
         window, arrived, answered_at, count = (
@@ -372,22 +363,20 @@ class InstanceManager:
             if is_warmup(k):
                 return  # a pre-roll warm-up (tick_engine.preroll_times): not recorded
             with lock:
-                if record:
+                if records is not None:
                     attachment = sample.attachment
-                    keep(
-                        y_frame(
-                            i,
-                            wall_ns(),
-                            payload,
-                            attachment.to_bytes() if attachment is not None else b"",
-                        )
+                    records.y(
+                        i,
+                        wall_ns(),
+                        payload,
+                        attachment.to_bytes() if attachment is not None else b"",
                     )
                 if k < tick.base or k > tick.released:
                     # a stray one, or a late answer: recorded, and in the ledger when its
                     # tick closed without it
                     late = tick.late_answer(k, i, received) if ledger else None
-                    if late is not None:
-                        keep(late_frame(i, k, wall_ns(), late))
+                    if late is not None and records is not None:
+                        records.late(i, k, wall_ns(), late)
                     return
                 slot = k % window
                 if arrived[slot, i]:
@@ -470,8 +459,8 @@ class InstanceManager:
             return
         state = str(message.get("state", ""))
         with self._lock:
-            if self._sink is not None:
-                self._frames.append(status_frame(i, self._wall_ns(), payload))
+            if self._records is not None:
+                self._records.status(i, self._wall_ns(), payload)
             if "degraded" in (state, self.agent_states.get(name)):
                 # A board link fault: the agent's ticks wait for its link, it is not hung.
                 self._tick.last_progress = self._clock()
@@ -506,7 +495,8 @@ class InstanceManager:
 
     def _on_vector(self, sample: zenoh.Sample) -> None:
         """A vector on another agent key (telemetry): recorded as it came."""
-        if self._sink is None:
+        records = self._records
+        if records is None:
             return
         try:
             name, leaf = self.keys.parse_agent_key(str(sample.key_expr))
@@ -514,13 +504,14 @@ class InstanceManager:
         except (bus.BusKeyError, KeyError) as exc:
             logger.warning("vector message not understood: %s", exc)
             return
-        frame = vector_frame(i, self._wall_ns(), leaf, sample.payload.to_bytes())
+        payload = sample.payload.to_bytes()
         with self._lock:
-            self._frames.append(frame)
+            records.vector(i, self._wall_ns(), leaf, payload)
 
     def _on_telemetry(self, sample: zenoh.Sample) -> None:
         """An agent's telemetry batch (every ~0.25 s): kept as it came, decoded by the recorder."""
-        if self._sink is None:
+        records = self._records
+        if records is None:
             return
         try:
             name, _ = self.keys.parse_agent_key(str(sample.key_expr))
@@ -528,9 +519,9 @@ class InstanceManager:
         except (bus.BusKeyError, KeyError) as exc:
             logger.warning("telemetry batch not understood: %s", exc)
             return
-        frame = telemetry_frame(i, self._wall_ns(), sample.payload.to_bytes())
+        payload = sample.payload.to_bytes()
         with self._lock:
-            self._frames.append(frame)
+            records.telemetry(i, self._wall_ns(), payload)
 
     def _on_request(self, sample: zenoh.Sample) -> None:
         """An operator's command (``hilswarm stop``): forwarded on ``control`` at once, so an
@@ -550,12 +541,13 @@ class InstanceManager:
 
     def _on_gateway(self, sample: zenoh.Sample) -> None:
         """The XBee gateway's status and per-tick figures (JSON): recorded as they came."""
-        if self._sink is None:
+        records = self._records
+        if records is None:
             return
         leaf = str(sample.key_expr).rsplit("/", 1)[-1]
-        frame = gateway_frame(self._wall_ns(), leaf, sample.payload.to_bytes())
+        payload = sample.payload.to_bytes()
         with self._lock:
-            self._frames.append(frame)
+            records.gateway(self._wall_ns(), leaf, payload)
 
     def _on_liveliness(self, sample: zenoh.Sample) -> None:
         try:
@@ -572,11 +564,11 @@ class InstanceManager:
             self._status_pub.put(bus.encode_json({"state": state, "detail": detail}))
 
     def _record_event(self, agent: str, state: str, *, k: int, detail: str) -> None:
-        if self._sink is None:
+        records = self._records
+        if records is None:
             return
-        frame = event_frame(self._wall_ns(), agent, state, k=k, t=k * self.dt, detail=detail)
         with self._lock:
-            self._frames.append(frame)
+            records.event(self._wall_ns(), agent, state, k=k, t=k * self.dt, detail=detail)
 
     def _flush_records(self, now: float | None = None) -> None:
         """Hand the records gathered so far to the sink (one write); the next batch is due one
@@ -585,20 +577,31 @@ class InstanceManager:
         # A realtime tick completing from half a period before the next batch is due carries it
         # (the completions jitter; one event per batch, not per tick).
         self._flush_from = self._next_flush - 0.5 * self.dt
-        sink = self._sink
-        if sink is None:
+        self._hand_over_records(final=False)
+
+    def _hand_over_records(self, *, final: bool) -> None:
+        """Hand the records gathered so far to the sink as one batch (``final``: the last,
+        which ends the stream)."""
+        sink, records = self._sink, self._records
+        if sink is None or records is None:
             return
         with self._lock:
-            frames = self._frames
-            if not frames:
+            if records.closed:
                 return
-            data = b"".join(frames)
-            count = len(frames)
-            frames.clear()
+            batch = records.close(self._wall_ns()) if final else records.take(self._wall_ns())
+            if batch is None:
+                return
             # the batch holds records gathered since the last one: of its tick on
-            first, tick = self._frames_since, self._tick.base
-            self._frames_since = tick
-        sink.write(data, count=count, tick=tick, first_tick=first)
+            first, tick = self._records_since, self._tick.base
+            self._records_since = tick
+        sink.write(
+            batch.data,
+            seq=batch.seq,
+            count=batch.count,
+            tick=tick,
+            first_tick=first,
+            defines=batch.defines,
+        )
 
     def request_stop(self, reason: str) -> None:
         """Ask the run to stop (thread-safe, signal-safe): agents to safe, then stopped."""
@@ -943,18 +946,20 @@ class InstanceManager:
             self._completion[k] = completion
         if account.answers is None:
             return
-        frame = tick_frame(
-            k,
-            self._wall_ns(),
-            scheduled_s=scheduled - self._clock_origin,
-            send_delay_s=account.sent - scheduled,
-            completion_s=completion,
-            late=account.late,
-            missing=sorted(self.lost),
-            answer_s=account.answers,
-        )
+        records = self._records
+        if records is None:
+            return
         with self._lock:
-            self._frames.append(frame)
+            records.tick(
+                k,
+                self._wall_ns(),
+                scheduled_s=scheduled - self._clock_origin,
+                send_delay_s=account.sent - scheduled,
+                completion_s=completion,
+                late=account.late,
+                missing=sorted(self.lost),
+                answer_s=account.answers,
+            )
 
     def _handle(self, item: tuple[Any, ...]) -> None:
         """One event while ticking."""
@@ -1164,6 +1169,7 @@ class InstanceManager:
                 self._session.close()
                 self._session = None
         self._flush_records()
+        self._hand_over_records(final=True)
 
     @property
     def estop_tick(self) -> int | None:

@@ -69,10 +69,11 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION
 from hilswarm.orchestrator.cpu_priority import PriorityError, lower_own_priority
 from hilswarm.orchestrator.experiment import Experiment
-from hilswarm.orchestrator.record_stream import FrameReader, FrameRecorder
+from hilswarm.orchestrator.record_stream import definitions
 from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
 from hilswarm.orchestrator.run_summary import RecordingReport
 from hilswarm.orchestrator.segments import existing_segments, segment_path
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
 
 logger = logging.getLogger(__name__)
 
@@ -99,8 +100,8 @@ MAX_RESTARTS = 3
 EXIT_NO_SPACE = 3
 
 _LENGTH = struct.Struct("<I")
-#: Head of a batch on the pipe: sequence number, length of the frames that follow [bytes].
-_BATCH = struct.Struct("<qI")
+#: Bytes read from the pipe at once [bytes].
+_READ_SIZE = 1 << 20
 _F_SETPIPE_SZ = getattr(fcntl, "F_SETPIPE_SZ", 1031)
 _F_GETPIPE_SZ = getattr(fcntl, "F_GETPIPE_SZ", 1032)
 _PIPE_MAX_SIZE = Path("/proc/sys/fs/pipe-max-size")
@@ -136,7 +137,7 @@ def _enlarge_pipe(fd: int, size: int) -> int:
 class _Batch:
     seq: int
     data: bytes
-    count: int  # records (frames) in it
+    count: int  # records (messages) in it
     tick: int  # the manager's tick when it was handed over (-1: unknown)
     first_tick: int  # the earliest tick its records can be of (-1: unknown)
 
@@ -220,7 +221,9 @@ class RecorderProcess:
         self._queue: deque[_Batch] = deque()  # not yet in the pipe
         self._sent: deque[_Batch] = deque()  # in the pipe, not acknowledged
         self._queued = 0  # bytes in both
-        self._seq = 0
+        self._seq = 0  # the last batch's number
+        # The stream's Header, Schema and Channel records so far: a new process gets them first.
+        self._definitions = b""
         self._tick = -1  # the latest tick a batch came with
         self._closing = False
         self._stdin_closed = False
@@ -465,15 +468,27 @@ class RecorderProcess:
 
     # -- writing -----------------------------------------------------------------------------
 
-    def write(self, data: bytes, *, count: int = 0, tick: int = -1, first_tick: int = -1) -> None:
-        """Hand a batch of frames to the process; returns at once unless the queue is full.
+    def write(
+        self,
+        data: bytes,
+        *,
+        seq: int,
+        count: int = 0,
+        tick: int = -1,
+        first_tick: int = -1,
+        defines: bool = False,
+    ) -> None:
+        """Hand batch ``seq`` of the record stream to the process; returns at once unless the
+        queue is full.
 
         Args:
-            data: whole frames (or pieces of them).
+            data: whole MCAP records of the stream, the last its batch marker.
+            seq: the batch's number (increasing; the process acknowledges by it).
             count: records in ``data`` (for the count of lost records, should any be lost).
             tick: the manager's tick when the batch was made (-1: unknown).
             first_tick: the earliest tick its records can be of (the manager's tick when it
                 began gathering them; -1: ``tick``). What is reported lost counts from here.
+            defines: ``data`` holds Schema or Channel records (kept for a new process).
 
         While ``queue_bytes`` of records wait for the pipe or an acknowledgement, this waits
         for room (logged once: the recorder cannot keep up); a batch larger than the bound
@@ -511,8 +526,12 @@ class RecorderProcess:
                 )
                 self._count_lost(count, first, tick)
                 return
-            self._seq += 1
-            self._queue.append(_Batch(self._seq, bytes(data), count, tick, first))
+            if seq <= self._seq:
+                raise RecordingError(f"record batch {seq} after batch {self._seq}")
+            self._seq = seq
+            if defines:
+                self._definitions += definitions(data)
+            self._queue.append(_Batch(seq, bytes(data), count, tick, first))
             self._queued += len(data)
             changed.notify_all()
 
@@ -539,11 +558,13 @@ class RecorderProcess:
                             stdin.close()
                     generation = self._generation
                     stdin = self.process.stdin
-                    parts.append(self._setup)
+                    # its set-up, then the stream's definitions so far (a new segment's first
+                    # batch may be any), then the batches
+                    parts += (self._setup, self._definitions)
                 while self._queue:
                     batch = self._queue.popleft()
                     self._sent.append(batch)
-                    parts += (_BATCH.pack(batch.seq, len(batch.data)), batch.data)
+                    parts.append(batch.data)
                 fd = self._fd
             try:
                 view = memoryview(b"".join(parts))
@@ -698,7 +719,7 @@ def _say(out: IO[bytes], *words: bytes) -> None:
 
 
 def record_stream(fd: int, out: IO[bytes], *, clock: Callable[[], float] = time.monotonic) -> int:
-    """Record the stream on ``fd`` until it ends; returns the number of frames recorded.
+    """Record the stream on ``fd`` until it ends; returns the number of messages recorded.
 
     Args:
         fd: the read end of the manager's pipe.
@@ -752,14 +773,13 @@ def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], 
             _say(out, _READY)
         else:
             _say(out, _READY, _LIVE, live.url.encode())
-        frames = FrameRecorder(recorder, experiment)
-        reader = FrameReader()
+        stream = StreamRecorder(recorder, experiment)
         started = time.perf_counter()
         cpu_started = time.process_time()
         last_seq = acked = -1
         next_ack = clock() + ACK_PERIOD_S
         while True:
-            if last_seq > acked and not reader.pending:
+            if last_seq > acked:
                 # acknowledge when due, or at once when the manager has nothing more now
                 wait_s = max(0.0, next_ack - clock())
                 if not select.select([fd], [], [], wait_s)[0]:
@@ -767,24 +787,27 @@ def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], 
                     _say(out, _ACK, str(last_seq).encode())
                     acked = last_seq
                     next_ack = clock() + ACK_PERIOD_S
-            head = _read_exactly(fd, _BATCH.size)
-            if head is None:
+            data = os.read(fd, _READ_SIZE)
+            if not data:
                 break
-            seq, length = _BATCH.unpack(head)
-            data = _read_exactly(fd, length) or b""
-            frames.apply_all(reader.feed(data))
+            # only whole batches are recorded: what is on disk after a flush is theirs
+            seq = stream.feed(data)
+            if seq is None:
+                continue
             last_seq = seq
-            if not reader.pending and clock() >= next_ack:
+            if clock() >= next_ack:
                 recorder.flush()
                 _say(out, _ACK, str(seq).encode())
                 acked = seq
                 next_ack = clock() + ACK_PERIOD_S
-        if reader.pending:
-            logger.error("record stream ended inside a frame (%d bytes lost)", reader.pending)
+        stream.feed(b"", whole=True)  # the stream's end, or what came before the pipe closed
+        if stream.pending:
+            logger.error("record stream ended inside a record (%d bytes lost)", stream.pending)
         logger.info(
-            "recorded %d frames (%d bad, %d messages) in %.2f s (%.2f s CPU) to %s",
-            frames.frames,
-            frames.errors,
+            "recorded %d stream messages (%d bad, %d messages written) in %.2f s (%.2f s CPU) "
+            "to %s",
+            stream.messages,
+            stream.errors,
             recorder.message_count,
             time.perf_counter() - started,
             time.process_time() - cpu_started,
@@ -792,7 +815,7 @@ def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], 
         )
     if last_seq > acked:
         _say(out, _ACK, str(last_seq).encode())
-    return frames.frames
+    return stream.messages
 
 
 class _RepeatFilter(logging.Filter):
