@@ -3,8 +3,9 @@
 The live view lives in the recorder process (:mod:`hilswarm.orchestrator.live_view`), never on
 the tick path: the agents and the manager are other processes. What it can cost is recorder CPU
 per message (and so, on a busy machine, CPU the ticks might have had). This benchmark feeds the
-frames of a Frisbee swarm (``benchmarks/record_stream.py``'s, 100 Hz, writes of 20 ms) through
-the real FrameRecorder into a real MCAP file, paired, in one process:
+record stream (MCAP, foxglove-sdk writer) of a Frisbee swarm (``benchmarks/record_stream.py``'s
+batches, 100 Hz, writes of 20 ms) through the real StreamRecorder into a real MCAP file, paired,
+in one process:
 
 * ``no live view`` — the baseline (``hilswarm run`` without ``--live``);
 * ``live, no client`` — the server runs, nobody is connected;
@@ -40,9 +41,10 @@ from pathlib import Path
 
 import websockets
 from hilswarm.orchestrator.live_view import LiveView
-from hilswarm.orchestrator.record_stream import FrameRecorder
+from hilswarm.orchestrator.record_stream import RecordBatch
 from hilswarm.orchestrator.recorder import Recorder, record_vehicles
-from record_stream import T0, build_frames, frisbee_experiment
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
+from record_stream import T0, build_batches, frisbee_experiment
 
 SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
 #: Batches fed before the timed part (every topic is registered and advertised by then).
@@ -95,24 +97,26 @@ class Client:
         self.thread.join(CLIENT_TIMEOUT_S)
 
 
-def measure(n: int, batches: list[bytes], folder: Path, mode: str) -> tuple[float, int, int]:
+def measure(n: int, batches: list[RecordBatch], folder: Path, mode: str) -> tuple[float, int, int]:
     """One paired run: (CPU [s] of the timed batches, messages recorded, messages received)."""
     experiment = frisbee_experiment(folder, n)
     live = None if mode == "none" else LiveView(0)
     recorder = Recorder(folder / f"{mode}.mcap", experiment, log_time_ns=T0, mirror=live)
     record_vehicles(recorder, experiment, log_time_ns=T0)
-    frames = FrameRecorder(recorder, experiment)
+    stream = StreamRecorder(recorder, experiment)
     for batch in batches[:WARM_BATCHES]:
-        frames.write(batch)
+        stream.write(batch.data, seq=batch.seq, count=batch.count, defines=batch.defines)
     client = None
     if live is not None and mode != "no client":
         client = Client(live.url, read=mode == "reading client")
     before = recorder.message_count
     start = time.process_time()
     for batch in batches[WARM_BATCHES:]:
-        frames.write(batch)
+        stream.write(batch.data, seq=batch.seq, count=batch.count, defines=batch.defines)
     recorder.close()
     cpu = time.process_time() - start
+    if stream.errors:
+        raise RuntimeError(f"{mode}: {stream.errors} record-stream messages not recorded")
     recorded = recorder.message_count - before
     received = 0
     if client is not None:
@@ -188,7 +192,7 @@ def main() -> None:
     print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} (uptime 1, 5 min)")
     modes = ("none", "no client", "slow client", "reading client")
     for n in agents:
-        batches, _ = build_frames(n, ticks)
+        batches, _ = build_batches(n, ticks)
         with tempfile.TemporaryDirectory() as tmp:
             results = {
                 mode: best_of(

@@ -1,18 +1,25 @@
 """Record-stream benchmark: what the recorder process spends per MCAP message.
 
-The instance manager hands the recorder process binary frames (``record_stream``); the recorder
-decodes them, builds the JSON of every message and writes it into a chunked, compressed MCAP
-file. This benchmark builds the frames a Frisbee swarm's manager sends (per agent and tick a
-``y`` frame with ``y = [x, y, psi]`` and a tick report with ``u`` of 2 and ``x_hat`` of 2; one
-tick frame per tick; every 25 ticks per agent a telemetry batch of ``battery`` (1 field) and
-``wheel_duty`` (2 fields)) and feeds them through
-:class:`~hilswarm.orchestrator.record_stream.FrameRecorder` into a real MCAP file in a temporary
-folder, in batches of 20 ms of ticks at 100 Hz, as the manager does.
+The instance manager hands the recorder process its record stream (MCAP, foxglove-sdk writer:
+``orchestrator/record_stream.py``'s :class:`~hilswarm.orchestrator.record_stream.RecordWriter`,
+the bus payloads as they came, in numbered batches); the recorder decodes it, builds the JSON of
+every message and writes it into a chunked, compressed MCAP file. This benchmark writes the
+record stream a Frisbee swarm's manager sends (per agent and tick a ``y`` message with
+``y = [x, y, psi]`` and a tick report with ``u`` of 2 and ``x_hat`` of 2; one tick message per
+tick; every 25 ticks per agent a telemetry batch of ``battery`` (1 field) and ``wheel_duty``
+(2 fields)), taking a batch every 20 ms of ticks at 100 Hz as the manager does, and feeds the
+batches through :class:`~hilswarm.orchestrator.stream_recorder.StreamRecorder` into a real MCAP
+file in a temporary folder.
 
-Figures: CPU [µs] per recorded message (frame decode + JSON + MCAP records + compression +
+Figures: CPU [µs] per recorded message (stream decode + JSON + MCAP records + compression +
 write to the OS, file closed), messages/s, and the ratio against a baseline measured in the
 same process: the plain ``mcap`` ``Writer`` (zstd, same chunk size) fed ``json.dumps`` of the
-same message dicts (built beforehand, so the baseline does no frame decoding at all).
+same message dicts (built beforehand, so the baseline does no stream decoding at all).
+
+The manager's side: the ``manager`` row is the CPU of the ``RecordWriter`` calls and
+``take()`` (what the manager spends per message and per tick to make the batches; the bus
+payloads are encoded beforehand, untimed, as the agents do that), and the ``process`` row says
+what the feeding side spends per tick in ``RecorderProcess.write``.
 
 Writer alone (the issue's target): CPU [µs] per message of foxglove-sdk's MCAP writer (what
 records every run) against the hand-written chunk writer hilswarm had before
@@ -49,9 +56,10 @@ import numpy as np
 from hilswarm.agents import bus
 from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
-from hilswarm.orchestrator.record_stream import FrameRecorder, telemetry_frame, tick_frame, y_frame
+from hilswarm.orchestrator.record_stream import RecordBatch, RecordWriter
 from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
@@ -62,7 +70,8 @@ T0 = 1_800_000_000_000_000_000  # a log time [ns, Unix epoch]
 RATE_HZ = 100.0
 BATCH_TICKS = 2  # ticks per write: the manager flushes every 20 ms
 TELEMETRY_TICKS = 25  # ticks per telemetry batch (0.25 s at 100 Hz)
-#: The real recorder process is fed the frames this many times over (its fixed cost is ~0.1 s).
+#: The real recorder process is fed the stream's messages this many times over (its fixed cost
+#: is ~0.1 s).
 PROCESS_REPEAT = 5
 #: Compressions measured; the first is the writer's default.
 COMPRESSIONS = ("zstd", "lz4", "none")
@@ -87,23 +96,31 @@ def frisbee_experiment(folder: Path, n: int) -> Experiment:
     return load_experiment(path)
 
 
-def build_frames(n: int, ticks: int) -> tuple[list[bytes], list[tuple[str, int, dict[str, Any]]]]:
-    """The manager's write batches for ``ticks`` ticks of ``n`` agents, and the same messages
-    as ``(topic, log time [ns], dict)`` for the baseline (``/orchestrator/ticks`` included).
+#: A message the baseline writes: topic, log time [ns], the message's dict.
+Message = tuple[str, int, dict[str, Any]]
+#: A tick of the manager's inputs: ``k``, log time [ns], per message in order ``(agent, log time
+#: [ns], payload, tick report)`` (report ``None``: a telemetry batch), the tick's timing account.
+TickInputs = tuple[int, int, list[tuple[int, int, bytes, bytes | None]], dict[str, Any]]
+
+
+def build_inputs(n: int, ticks: int) -> tuple[list[TickInputs], list[Message]]:
+    """What the manager of ``n`` agents receives in ``ticks`` ticks (the bus payloads as they
+    come, the tick's timing account), and the same messages as ``(topic, log time [ns], dict)``
+    for the baseline (``/orchestrator/ticks`` included).
     """
     rng = np.random.default_rng(1)
     dt = 1.0 / RATE_HZ
     battery_head = bus.telemetry_channel_head("battery", ("battery",))
     duty_head = bus.telemetry_channel_head("wheel_duty", ("left", "right"))
     names = [f"f{i}" for i in range(n)]
-    batches: list[bytes] = []
-    messages: list[tuple[str, int, dict[str, Any]]] = []
-    pending: list[bytes] = []
+    inputs: list[TickInputs] = []
+    messages: list[Message] = []
     for k in range(ticks):
         t = k * dt
         log = T0 + int(k * dt * 1e9) + 3_000_000
         answers = 0.001 + 0.002 * rng.random(n)
         agents: dict[str, Any] = {}
+        received: list[tuple[int, int, bytes, bytes | None]] = []
         for i in range(n):
             y = (rng.normal(size=3) * [1.0, 1.0, 3.0]).tolist()
             u = rng.normal(size=2).tolist() if k else None
@@ -115,7 +132,7 @@ def build_frames(n: int, ticks: int) -> tuple[list[bytes], list[tuple[str, int, 
             )
             payload = bus.encode_vector(k, t, y)
             report = bus.encode_report(timing, u, x_hat)
-            pending.append(y_frame(i, log, payload, report))
+            received.append((i, log, payload, report))
             messages.append(
                 (f"/{names[i]}/y", log, {"k": k, "t": t, "values": y, "x": y[0], "y": y[1],
                                         "psi": y[2]})
@@ -138,7 +155,7 @@ def build_frames(n: int, ticks: int) -> tuple[list[bytes], list[tuple[str, int, 
                 batch = bus.encode_telemetry_batch(
                     [(battery_head, ks, ts, battery), (duty_head, ks, ts, duty)]
                 )
-                pending.append(telemetry_frame(i, log, batch))
+                received.append((i, log, batch, None))
                 for row in range(TELEMETRY_TICKS):
                     kr, tr = int(ks[row]), float(ts[row])
                     b = float(battery[row, 0])
@@ -151,18 +168,15 @@ def build_frames(n: int, ticks: int) -> tuple[list[bytes], list[tuple[str, int, 
                         (f"/{names[i]}/telemetry/wheel_duty", log,
                          {"k": kr, "t": tr, "values": [left, right], "left": left, "right": right})
                     )  # fmt: skip
-        pending.append(
-            tick_frame(
-                k,
-                log,
-                scheduled_s=t,
-                send_delay_s=2e-5,
-                completion_s=float(answers.max()),
-                late=[],
-                missing=[],
-                answer_s=answers,
-            )
-        )
+        account = {
+            "scheduled_s": t,
+            "send_delay_s": 2e-5,
+            "completion_s": float(answers.max()),
+            "late": [],
+            "missing": [],
+            "answer_s": answers,
+        }
+        inputs.append((k, log, received, account))
         messages.append(
             (
                 "/orchestrator/ticks",
@@ -172,11 +186,53 @@ def build_frames(n: int, ticks: int) -> tuple[list[bytes], list[tuple[str, int, 
                  "agents": agents},
             )
         )  # fmt: skip
-        if (k + 1) % BATCH_TICKS == 0:
-            batches.append(b"".join(pending))
-            pending.clear()
-    if pending:
-        batches.append(b"".join(pending))
+    return inputs, messages
+
+
+def write_stream(
+    n: int, inputs: list[TickInputs], repeat: int = 1
+) -> tuple[list[RecordBatch], float]:
+    """The manager's side: ``inputs`` (``repeat`` times over) logged on a :class:`RecordWriter`,
+    a batch taken every :data:`BATCH_TICKS` ticks, the stream closed after the last tick.
+
+    Returns:
+        The batches, in order, and the CPU of the ``RecordWriter`` calls and ``take()`` /
+        ``close()`` [s] (the loop over the ready inputs included; nothing else).
+    """
+    writer = RecordWriter([f"f{i}" for i in range(n)])
+    y, telemetry, tick, take = writer.y, writer.telemetry, writer.tick, writer.take
+    batches: list[RecordBatch] = []
+    last = len(inputs) * repeat - 1
+    done = 0
+    start = _cpu_s()
+    for _ in range(repeat):
+        for k, log, received, account in inputs:
+            for i, log_i, payload, report in received:
+                if report is None:
+                    telemetry(i, log_i, payload)
+                else:
+                    y(i, log_i, payload, report)
+            tick(k, log, **account)
+            if done == last:
+                batches.append(writer.close(log))
+            elif (done + 1) % BATCH_TICKS == 0:
+                batch = take(log)
+                if batch is not None:
+                    batches.append(batch)
+            done += 1
+    seconds = _cpu_s() - start
+    if not inputs:
+        batches.append(writer.close(T0))
+    return batches, seconds
+
+
+def build_batches(n: int, ticks: int) -> tuple[list[RecordBatch], list[Message]]:
+    """The manager's record-stream batches for ``ticks`` ticks of ``n`` agents (a batch every
+    :data:`BATCH_TICKS` ticks, the last one closing the stream), and the same messages as
+    ``(topic, log time [ns], dict)`` for the baseline (``/orchestrator/ticks`` included).
+    """
+    inputs, messages = build_inputs(n, ticks)
+    batches, _ = write_stream(n, inputs)
     return batches, messages
 
 
@@ -184,10 +240,29 @@ def _cpu_s() -> float:
     return time.process_time()
 
 
+def _batch_ticks(batch: RecordBatch) -> tuple[int, int]:
+    """The manager's tick when ``batch`` was taken, and the first tick it holds (what
+    :meth:`RecorderProcess.write` is told; a batch every :data:`BATCH_TICKS` ticks)."""
+    return batch.seq * BATCH_TICKS - 1, (batch.seq - 1) * BATCH_TICKS
+
+
+def hand_over(process: RecorderProcess, batch: RecordBatch) -> None:
+    """Hand ``batch`` to the recorder process, as the manager does."""
+    tick, first_tick = _batch_ticks(batch)
+    process.write(
+        batch.data,
+        seq=batch.seq,
+        count=batch.count,
+        tick=tick,
+        first_tick=first_tick,
+        defines=batch.defines,
+    )
+
+
 def run_recorder(
-    experiment: Experiment, batches: list[bytes], path: Path, compression: str | None
+    experiment: Experiment, batches: list[RecordBatch], path: Path, compression: str | None
 ) -> tuple[float, int]:
-    """Feed ``batches`` through a FrameRecorder into ``path``: (CPU [s], messages written).
+    """Feed ``batches`` through a StreamRecorder into ``path``: (CPU [s], messages written).
 
     The set-up (``/experiment``, calibrations, output names) is not timed; closing the file
     (last chunk, summary, indexes) is.
@@ -201,12 +276,14 @@ def run_recorder(
         recorder = Recorder(path, experiment, log_time_ns=T0)
     record_vehicles(recorder, experiment, log_time_ns=T0)
     before = recorder.message_count
-    frames = FrameRecorder(recorder, experiment)
+    stream = StreamRecorder(recorder, experiment)
     start = _cpu_s()
     for batch in batches:
-        frames.write(batch)
+        stream.write(batch.data, seq=batch.seq, count=batch.count, defines=batch.defines)
     recorder.close()
     elapsed = _cpu_s() - start
+    if stream.errors:
+        raise SystemExit(f"{path}: {stream.errors} record-stream messages not recorded")
     return elapsed, recorder.message_count - before
 
 
@@ -221,7 +298,9 @@ def _reaped_children_cpu_s() -> float:
     return usage.ru_utime + usage.ru_stime
 
 
-def run_process(experiment: Experiment, batches: list[bytes], path: Path) -> tuple[float, float]:
+def run_process(
+    experiment: Experiment, batches: list[RecordBatch], path: Path
+) -> tuple[float, float]:
     """Feed ``batches`` to a real recorder process, as the manager does.
 
     Returns:
@@ -236,7 +315,7 @@ def run_process(experiment: Experiment, batches: list[bytes], path: Path) -> tup
         blocked = 0.0
         for batch in batches:
             before = time.perf_counter()
-            process.write(batch)
+            hand_over(process, batch)
             blocked += time.perf_counter() - before
     finally:
         code = process.close()
@@ -298,7 +377,7 @@ def writer_only(path: Path, n: int, *, foxglove_writer: bool) -> float:
 def realtime_process(folder: Path, n: int, ticks: int) -> str:
     """The real recorder process fed ``n`` agents at :data:`RATE_HZ`, paced; a result line."""
     experiment = frisbee_experiment(folder, n)
-    batches, messages = build_frames(n, ticks)
+    batches, messages = build_batches(n, ticks)
     path = folder / f"realtime-{n}.mcap"
     children = _reaped_children_cpu_s()
     process = RecorderProcess(path, experiment, log_time_ns=T0)
@@ -311,7 +390,7 @@ def realtime_process(folder: Path, n: int, ticks: int) -> str:
             delay = start + i * period - time.perf_counter()
             if delay > 0:
                 time.sleep(delay)
-            process.write(batch)
+            hand_over(process, batch)
         wall = time.perf_counter() - start
         backlog = process.queued_bytes
     finally:
@@ -371,7 +450,7 @@ def main() -> None:
         folder = Path(tmp)
         if args.profile:
             experiment = frisbee_experiment(folder, 8)
-            batches, _ = build_frames(8, ticks)
+            batches, _ = build_batches(8, ticks)
             profiler = cProfile.Profile()
             profiler.enable()
             run_recorder(experiment, batches, folder / "profile.mcap", None)
@@ -417,13 +496,29 @@ def main() -> None:
 def measure_fleet(
     folder: Path, n: int, ticks: int, repeats: int, compressions: list[str], *, process: bool
 ) -> Path | None:
-    """Print one line per compression for ``n`` agents; returns the last file written."""
+    """Print the manager's line, one line per compression and the recorder process's line for
+    ``n`` agents; returns the last file written."""
     experiment = frisbee_experiment(folder, n)
-    batches, messages = build_frames(n, ticks)
+    inputs, messages = build_inputs(n, ticks)
+    batches, _ = write_stream(n, inputs)
     base_path = folder / f"baseline-{n}.mcap"
     base_s = best_of(repeats, lambda: run_baseline(messages, base_path))
     check_file(base_path, len(messages))
     base_us = 1e6 * base_s / len(messages)
+    # The manager's side: RecordWriter calls + take(), per recorded message (as the other
+    # rows), per message of the stream (what the manager logs) and per tick.
+    seconds = best_of(repeats, lambda: write_stream(n, inputs)[1])
+    count = len(messages)
+    logged = sum(batch.count for batch in batches)
+    us = 1e6 * seconds / count
+    size_mb = sum(len(batch.data) for batch in batches) / 1e6
+    print(
+        f"{n:>3} {'manager':11} {count:>8} {us:>7.2f} {count / seconds:>9.0f} "
+        f"{1e3 * seconds / ticks:>8.3f} {size_mb:>6.2f} {base_us:>8.2f} "
+        f"{us / base_us:>6.2f}   (RecordWriter calls + take(): "
+        f"{1e6 * seconds / ticks:.1f} µs/tick, {1e6 * seconds / logged:.2f} µs per stream "
+        f"message, {logged} of them)"
+    )
     path = None
     for compression in compressions:
         path = folder / f"run-{n}-{compression}.mcap"
@@ -448,12 +543,16 @@ def measure_fleet(
         )
     if process:
         path = folder / f"process-{n}.mcap"
-        # The stream sent PROCESS_REPEAT times over: long enough to dwarf the fixed cost.
-        stream = batches * PROCESS_REPEAT
+        # The messages sent PROCESS_REPEAT times over (one stream): long enough to dwarf the
+        # fixed cost.
+        stream, _ = write_stream(n, inputs, PROCESS_REPEAT)
         count = len(messages) * PROCESS_REPEAT
         results = [run_process(experiment, stream, path) for _ in range(repeats)]
-        # what a stream without frames costs (reading the pipe's end, closing, exiting)
-        fixed = min(run_process(experiment, [], folder / "empty.mcap")[0] for _ in range(repeats))
+        # what a stream without messages costs (reading the pipe's end, closing, exiting)
+        empty, _ = write_stream(n, [])
+        fixed = min(
+            run_process(experiment, empty, folder / "empty.mcap")[0] for _ in range(repeats)
+        )
         seconds = min(cpu for cpu, _ in results) - fixed
         blocked = min(wait for _, wait in results)
         check_file(path, count)

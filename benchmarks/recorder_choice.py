@@ -7,8 +7,9 @@ publishers in another process putting ``n`` agents' ``y`` (64 bytes, the tick pa
 ``rate`` Hz, and, paired in the same run, a second client process subscribed to the same keys
 (the recorder as a bus subscriber). Figures: CPU of the manager's process per published message
 without and with the subscribing recorder (the router's extra routing), and what the pipe
-path costs the manager per message instead (``y_frame`` + append + ``RecorderProcess.write``
-amortised, measured in-process on the same payloads).
+path costs the manager per message instead: the record stream (MCAP, foxglove-sdk writer),
+``RecordWriter.y`` per message + ``take()`` + ``RecorderProcess.write`` per batch of 20 ms
+amortised, measured in-process on the same payloads.
 
     python benchmarks/recorder_choice.py            # 64 agents at 100 Hz, 5 s per figure
     python benchmarks/recorder_choice.py --short    # 2 s per figure
@@ -100,9 +101,10 @@ def manager_figure(n: int, rate: float, seconds: float, *, with_recorder: bool) 
 
 
 def pipe_figure(n: int, ticks: int) -> float:
-    """CPU [µs] per message of the manager's pipe path: frame, append, flush, write."""
+    """CPU [µs] per message of the manager's pipe path: ``RecordWriter.y``, ``take()``,
+    ``RecorderProcess.write``."""
     from hilswarm.orchestrator.experiment import load_experiment  # noqa: PLC0415
-    from hilswarm.orchestrator.record_stream import y_frame  # noqa: PLC0415
+    from hilswarm.orchestrator.record_stream import RecordWriter  # noqa: PLC0415
     from hilswarm.orchestrator.recorder_process import RecorderProcess  # noqa: PLC0415
 
     graphs = Path(__file__).resolve().parents[1] / "graphs"
@@ -112,17 +114,40 @@ def pipe_figure(n: int, ticks: int) -> float:
         process = RecorderProcess(Path(tmp) / "run.mcap", experiment, log_time_ns=0)
         try:
             process.wait_ready()
-            frames: list[bytes] = []
+            writer = RecordWriter(experiment.agent_names)
+            agents = len(writer.names)
+            first = 0
             start = cpu_s()
             for k in range(ticks):
                 for i in range(n):
-                    frames.append(y_frame(i % 3, time.time_ns(), payload, b""))
+                    writer.y(i % agents, time.time_ns(), payload, b"")
                 if k % 2:
-                    process.write(b"".join(frames), count=len(frames), tick=k)
-                    frames.clear()
+                    batch = writer.take(time.time_ns())
+                    if batch is not None:
+                        process.write(
+                            batch.data,
+                            seq=batch.seq,
+                            count=batch.count,
+                            tick=k,
+                            first_tick=first,
+                            defines=batch.defines,
+                        )
+                    first = k + 1
             used = cpu_s() - start
+            # the end of the stream (not timed: once per run)
+            batch = writer.close(time.time_ns())
+            process.write(
+                batch.data,
+                seq=batch.seq,
+                count=batch.count,
+                tick=ticks - 1,
+                first_tick=first,
+                defines=batch.defines,
+            )
         finally:
-            process.close()
+            code = process.close()
+    if code != 0:
+        raise SystemExit(f"the recorder process exited with status {code}")
     return 1e6 * used / (n * ticks)
 
 

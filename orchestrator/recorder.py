@@ -7,7 +7,7 @@ Topics (a user-facing contract, see ``docs/recording.md``):
 * ``/<agent>/y``, ``/<agent>/u``, ``/<agent>/x_hat``, ``/<agent>/telemetry/<channel>`` —
   vectors, via :meth:`Recorder.write_vector` / :meth:`Recorder.write_floats` (telemetry topics
   are registered with the channel's field names by
-  :class:`~hilswarm.orchestrator.record_stream.FrameRecorder` when the first batch comes).
+  :class:`~hilswarm.orchestrator.stream_recorder.StreamRecorder` when the first batch comes).
 * ``/<agent>/status`` — lifecycle state changes, via :meth:`Recorder.write_status`.
 * ``/orchestrator/ticks`` — the timing account of every tick, via :meth:`Recorder.write_ticks`.
 * ``/<agent>/calibration`` — the calibration each vehicle runs with (once, at ``k = 0``), via

@@ -3,7 +3,8 @@
 ``hilswarm run`` starts ``python -m hilswarm.orchestrator.recorder_process`` with a pipe on
 its standard input. The first message on the pipe says what to record (file, experiment as
 loaded, log time of ``/experiment``); everything after it is the manager's record stream
-(:mod:`hilswarm.orchestrator.record_stream`) in numbered batches. The process writes
+(:mod:`hilswarm.orchestrator.record_stream`: an MCAP stream in numbered batches, read by a
+:class:`~hilswarm.orchestrator.stream_recorder.StreamRecorder`). The process writes
 ``/experiment``, each vehicle's calibration and output names
 (:func:`~hilswarm.orchestrator.recorder.record_vehicles`), says ``ready`` on its standard
 output, then records every batch. JSON encoding and MCAP chunking happen here, on the other
@@ -23,8 +24,9 @@ boundaries (at least every :data:`ACK_PERIOD_S`) and then *acknowledges* the las
 holds on disk (``ack N`` on its standard output). :class:`RecorderProcess` keeps every batch
 until it is acknowledged. If the process dies (killed, crashed), a new one is started on the
 next *segment* of the recording (``run.mcap``, ``run.1.mcap``, ``run.2.mcap``, ...: each a
-complete MCAP file with ``/experiment`` and the calibrations) and the unacknowledged batches
-are sent again, so the new segment continues where the last chunk on disk ended. The dead
+complete MCAP file with ``/experiment`` and the calibrations) and is sent the stream's
+definitions (its Header, Schema and Channel records so far) and then the unacknowledged
+batches, so the new segment continues where the last chunk on disk ended. The dead
 segment is rewritten as a complete file at the end (``hilswarm recover``'s reading). Only a
 failure that a restart cannot mend ends the recording: the disk is full (the process says
 ``error nospace``), or :data:`MAX_RESTARTS` restarts were used up. Then the owner's

@@ -1,7 +1,10 @@
-"""The record stream and the recorder process: frames in, the MCAP topics of the contract out."""
+"""The record stream and the recorder process: the manager's MCAP stream in, the MCAP topics of
+the contract out."""
 
 from __future__ import annotations
 
+import io
+import itertools
 import json
 import math
 from pathlib import Path
@@ -13,16 +16,15 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import iter_messages, json_safe, vector_json
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
 from hilswarm.orchestrator.record_stream import (
-    FrameReader,
-    FrameRecorder,
-    event_frame,
-    status_frame,
-    tick_frame,
-    vector_frame,
-    y_frame,
+    OP_MESSAGE,
+    PROFILE,
+    RecordBatch,
+    RecordWriter,
+    records,
 )
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.recorder_process import RecorderProcess
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
 from hypothesis import given
 from hypothesis import strategies as st
 from mcap.reader import make_reader
@@ -58,10 +60,13 @@ def test_vector_json_is_what_json_dumps_gives(
     assert vector_json(k, t, values, quoted) == expected
 
 
-def frames_of_a_run(experiment: Experiment, ticks: int = 5) -> bytes:
-    """Frames a manager would send for ``ticks`` ticks of lead_follow (3 agents)."""
+def stream_of_a_run(experiment: Experiment, ticks: int = 5) -> list[RecordBatch]:
+    """The record stream a manager would hand over for ``ticks`` ticks of lead_follow (3
+    agents), a batch per tick and the stream's end."""
     n = len(experiment.agent_names)
-    parts = [status_frame(0, T0, bus.encode_json({"state": "running", "k": 0, "t": 0.0}))]
+    writer = RecordWriter(experiment.agent_names)
+    batches: list[RecordBatch] = []
+    writer.status(0, T0, bus.encode_json({"state": "running", "k": 0, "t": 0.0}))
     for k in range(ticks):
         t = k * experiment.dt
         for i in range(n):
@@ -69,24 +74,26 @@ def frames_of_a_run(experiment: Experiment, ticks: int = 5) -> bytes:
             x_hat = None if k == 0 else np.array([float(k)])
             timing = bus.AgentTiming(compute_s=1e-4, actuate_s=2e-4, sense_s=3e-4, skipped=i)
             payload = bus.encode_vector(k, t, [float(i), float(k), math.nan if k == 2 else 0.5])
-            parts.append(y_frame(i, T0 + k, payload, bus.encode_report(timing, u, x_hat)))
+            writer.y(i, T0 + k, payload, bus.encode_report(timing, u, x_hat))
         answers = np.array([0.001, 0.002, math.nan])
-        parts.append(
-            tick_frame(
-                k,
-                T0 + k,
-                scheduled_s=t,
-                send_delay_s=1e-5,
-                completion_s=math.nan if k == 3 else 0.002,
-                late=[2],
-                missing=[2] if k == 4 else [],
-                answer_s=answers,
-            )
+        writer.tick(
+            k,
+            T0 + k,
+            scheduled_s=t,
+            send_delay_s=1e-5,
+            completion_s=math.nan if k == 3 else 0.002,
+            late=[2],
+            missing=[2] if k == 4 else [],
+            answer_s=answers,
         )
-    parts.append(vector_frame(1, T0, "telemetry/battery", bus.encode_vector(4, 0.2, [11.9])))
-    parts.append(event_frame(T0, "f2", "lost", k=4, t=0.2, detail="killed"))
-    parts.append(event_frame(T0, "orchestrator", "stopping", k=4, t=0.2, detail="completed"))
-    return b"".join(parts)
+        batch = writer.take(T0 + k)
+        assert batch is not None
+        batches.append(batch)
+    writer.vector(1, T0, "telemetry/battery", bus.encode_vector(4, 0.2, [11.9]))
+    writer.event(T0, "f2", "lost", k=4, t=0.2, detail="killed")
+    writer.event(T0, "orchestrator", "stopping", k=4, t=0.2, detail="completed")
+    batches.append(writer.close(T0 + ticks))
+    return batches
 
 
 def check_recording(path: Path, experiment: Experiment) -> None:
@@ -119,35 +126,76 @@ def check_recording(path: Path, experiment: Experiment) -> None:
     assert recording["/orchestrator/status"][-1]["detail"] == "completed"
 
 
-def test_frames_in_process_give_the_topics_of_the_contract(
+def test_the_stream_in_process_gives_the_topics_of_the_contract(
     tmp_path: Path, experiment: Experiment
 ) -> None:
     path = tmp_path / "run.mcap"
     with Recorder(path, experiment, log_time_ns=T0) as recorder:
-        FrameRecorder(recorder, experiment).write(frames_of_a_run(experiment))
+        stream = StreamRecorder(recorder, experiment)
+        for batch in stream_of_a_run(experiment):
+            stream.write(batch.data, seq=batch.seq, count=batch.count, defines=batch.defines)
+        assert (stream.messages, stream.errors) == (5 * 4 + 4, 0)
     check_recording(path, experiment)
 
 
-def test_frame_reader_takes_bytes_cut_anywhere(experiment: Experiment) -> None:
-    data = frames_of_a_run(experiment)
-    whole = list(FrameReader().feed(data))
-    reader = FrameReader()
-    pieces = []
-    for start in range(0, len(data), 7):
-        pieces += list(reader.feed(data[start : start + 7]))
-    assert pieces == whole and reader.pending == 0
+def test_the_stream_is_an_mcap_file_any_reader_opens(experiment: Experiment) -> None:
+    batches = stream_of_a_run(experiment)
+    assert [batch.seq for batch in batches] == list(range(1, 7))
+    assert [batch.defines for batch in batches] == [True] + [False] * 4 + [True]
+    reader = make_reader(io.BytesIO(b"".join(batch.data for batch in batches)))
+    assert reader.get_header().profile == PROFILE
+    messages = [(channel, message) for _, channel, message in reader.iter_messages()]
+    topics = [channel.topic for channel, _ in messages]
+    assert topics[:5] == [
+        "agent/leader/status",
+        "agent/leader/y",
+        "agent/f1/y",
+        "agent/f2/y",
+        "orchestrator/ticks",
+    ]
+    assert topics.count("stream/batch") == 6 and topics[-1] == "stream/batch"
+    channel, message = messages[2]
+    assert channel.metadata == {"kind": "y", "agent": "1"}
+    assert channel.message_encoding == "hilswarm.y" and message.log_time == T0
+    vector_size = int.from_bytes(message.data[:4], "little")
+    assert bus.unpack_vector(message.data[4 : 4 + vector_size])[0] == 0
+    assert messages[0][0].message_encoding == "json"
+    assert json.loads(messages[0][1].data)["state"] == "running"
 
 
-def test_recorder_process_records_the_stream_and_closes_the_file(
+def test_only_whole_batches_are_recorded_from_bytes_cut_anywhere(
+    tmp_path: Path, experiment: Experiment
+) -> None:
+    batches = stream_of_a_run(experiment)
+    data = b"".join(batch.data for batch in batches)
+    ends = list(itertools.accumulate(len(batch.data) for batch in batches))
+    # the last batch ends at its marker, the stream's last message (DataEnd and Footer follow)
+    ends[-1] = max(stop for opcode, _, stop in records(data) if opcode == OP_MESSAGE)
+    with Recorder(tmp_path / "run.mcap", experiment, log_time_ns=T0) as recorder:
+        stream = StreamRecorder(recorder, experiment)
+        for start in range(0, len(data), 7):
+            stop = min(start + 7, len(data))
+            seq = stream.feed(data[start:stop])
+            whole = sum(1 for end in ends if end <= stop)  # batches complete so far
+            recorded = sum(batch.count for batch in batches[:whole])
+            if seq is not None:
+                assert seq == whole
+            assert stream.messages == recorded
+            assert stream.pending == stop - (ends[whole - 1] if whole else 0)
+        stream.feed(b"", whole=True)
+        assert (stream.pending, stream.messages, stream.errors) == (0, 24, 0)
+    check_recording(tmp_path / "run.mcap", experiment)
+
+
+def test_the_recorder_process_records_the_stream_and_closes_the_file(
     tmp_path: Path, experiment: Experiment
 ) -> None:
     path = tmp_path / "out" / "run.mcap"
     recorder = RecorderProcess(path, experiment, log_time_ns=T0)
     try:
         recorder.wait_ready()
-        data = frames_of_a_run(experiment)
-        recorder.write(data[:100])  # frames may be cut between writes
-        recorder.write(data[100:])
+        for batch in stream_of_a_run(experiment):
+            recorder.write(batch.data, seq=batch.seq, count=batch.count, defines=batch.defines)
     finally:
         assert recorder.close() == 0
     with path.open("rb") as f:

@@ -13,9 +13,10 @@ from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.orchestrator import plotting
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.outcome import CLEAN, DEGRADED, decide
-from hilswarm.orchestrator.record_stream import FrameReader, FrameRecorder, tick_frame, y_frame
+from hilswarm.orchestrator.record_stream import RecordWriter
 from hilswarm.orchestrator.recorder import Recorder, record_vehicles
 from hilswarm.orchestrator.run_summary import RunSummary
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
 
 GRAPHS = Path(__file__).resolve().parents[2] / "graphs"
 T0 = 1_800_000_000_000_000_000  # a log time [ns, Unix epoch]
@@ -41,24 +42,24 @@ def _report(i: int, k: int) -> bytes:
 
 @pytest.fixture
 def ticks(tmp_path: Path) -> list[dict]:
-    """The /orchestrator/ticks of 6 ticks of three agents, through the frame recorder."""
+    """The /orchestrator/ticks of 6 ticks of three agents, through the stream recorder."""
     experiment = load_experiment(GRAPHS / "lead_follow.toml", overrides={"duration_s": 1.0})
     path = tmp_path / "ledger.mcap"
-    data = b""
+    writer = RecordWriter(experiment.agent_names)
     for k in range(6):
         for i in range(3):
             payload = bus.encode_vector(k, k * experiment.dt, [float(i), 0.0, 0.0])
-            data += y_frame(i, T0 + k, payload, _report(i, k))
-        data += tick_frame(
+            writer.y(i, T0 + k, payload, _report(i, k))
+        writer.tick(
             k, T0 + k, scheduled_s=k * experiment.dt, send_delay_s=1e-5, completion_s=ANSWER_S,
             late=[], missing=[], answer_s=np.full(3, ANSWER_S),
         )  # fmt: skip
     with Recorder(path, experiment, log_time_ns=T0) as recorder:
         record_vehicles(recorder, experiment, log_time_ns=T0)
-        frames = FrameRecorder(recorder, experiment)
-        # from tick 1 on, each agent's frames take the layout cached for their length
-        frames.apply_all(FrameReader().feed(data))
-        assert frames.errors == 0
+        stream = StreamRecorder(recorder, experiment)
+        # from tick 1 on, each agent's y messages take the layout cached for their length
+        stream.write(writer.close(T0).data)
+        assert stream.errors == 0
     messages = [m for topic, _, m in iter_messages(path) if topic == "/orchestrator/ticks"]
     assert len(messages) == 6
     return messages

@@ -14,8 +14,8 @@ from hilswarm.orchestrator import plotting
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.manager import InstanceManager
 from hilswarm.orchestrator.plotting import load_recording
-from hilswarm.orchestrator.record_stream import FrameRecorder
 from hilswarm.orchestrator.recorder import Recorder
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
 from hilswarm.orchestrator.tick_window import CLOSED_KEPT, TickWindow
 from test_realtime_clock import manager, write
 
@@ -105,7 +105,7 @@ def test_an_answer_after_its_tick_closed_is_in_the_recorded_ledger(tmp_path: Pat
     with Recorder(path, experiment, log_time_ns=start_ns) as recorder:
         m = InstanceManager(
             experiment,
-            recorder=FrameRecorder(recorder, experiment),
+            recorder=StreamRecorder(recorder, experiment),
             listen=[bus.loopback_endpoint(0)],
             clock=time.monotonic,
         )

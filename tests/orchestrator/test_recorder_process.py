@@ -1,4 +1,4 @@
-"""The record stream's recorder side: FrameRecorder's batching and the real recorder process
+"""The record stream's recorder side: StreamRecorder's batching and the real recorder process
 (lower CPU priority, writes that never wait for a lagging recorder, nothing dropped)."""
 
 from __future__ import annotations
@@ -19,17 +19,10 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.orchestrator.cpu_priority import autogroup_niceness
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
-from hilswarm.orchestrator.record_stream import (
-    FrameReader,
-    FrameRecorder,
-    event_frame,
-    status_frame,
-    telemetry_frame,
-    tick_frame,
-    y_frame,
-)
+from hilswarm.orchestrator.record_stream import RecordBatch, RecordWriter
 from hilswarm.orchestrator.recorder import Recorder, record_vehicles
 from hilswarm.orchestrator.recorder_process import RECORDER_NICE, RecorderProcess
+from hilswarm.orchestrator.stream_recorder import StreamRecorder
 from mcap.reader import make_reader
 
 GRAPHS = Path(__file__).resolve().parents[2] / "graphs"
@@ -42,36 +35,32 @@ def experiment() -> Experiment:
     return load_experiment(GRAPHS / "lead_follow.toml", overrides={"duration_s": 1.0})
 
 
-def agent_y_frame(i: int, k: int, dt: float, *, n_y: int = 3) -> bytes:
-    """Agent ``i``'s y frame of tick ``k`` (``u`` and ``x_hat`` from tick 1 on)."""
+def log_y(writer: RecordWriter, i: int, k: int, dt: float, *, n_y: int = 3) -> None:
+    """Agent ``i``'s y of tick ``k`` (``u`` and ``x_hat`` from tick 1 on)."""
     u = None if k == 0 else np.array([0.1 * i, -0.1 * k])
     x_hat = None if k == 0 else np.array([float(k), 0.5])
     timing = bus.AgentTiming(
         compute_s=1e-4 * i, actuate_s=2e-4, sense_s=3e-4, skipped=i, link_s=5e-4, retries=i
     )
     payload = bus.encode_vector(k, k * dt, [float(i), k / 3, math.pi][:n_y])
-    return y_frame(i, T0 + k, payload, bus.encode_report(timing, u, x_hat))
+    writer.y(i, T0 + k, payload, bus.encode_report(timing, u, x_hat))
 
 
-def tick_frames(k: int, dt: float) -> list[bytes]:
-    """What the manager sends for tick ``k`` of lead_follow: three y frames and the tick."""
-    frames = [agent_y_frame(i, k, dt) for i in range(3)]
-    frames.append(
-        tick_frame(
-            k,
-            T0 + k,
-            scheduled_s=k * dt,
-            send_delay_s=1e-5,
-            completion_s=0.002,
-            late=[],
-            missing=[],
-            answer_s=np.array([0.001, 0.002, 0.003]),
-        )
+def log_tick(writer: RecordWriter, k: int, dt: float) -> None:
+    """Tick ``k``'s account as the manager records it."""
+    writer.tick(
+        k,
+        T0 + k,
+        scheduled_s=k * dt,
+        send_delay_s=1e-5,
+        completion_s=0.002,
+        late=[],
+        missing=[],
+        answer_s=np.array([0.001, 0.002, 0.003]),
     )
-    return frames
 
 
-def telemetry(i: int, k0: int, n: int, dt: float) -> bytes:
+def log_telemetry(writer: RecordWriter, i: int, k0: int, n: int, dt: float) -> None:
     ks = np.arange(k0, k0 + n, dtype=np.int64)
     battery = bus.telemetry_channel_head("battery", ("battery",))
     duty = bus.telemetry_channel_head("wheel_duty", ("left", "right"))
@@ -81,31 +70,38 @@ def telemetry(i: int, k0: int, n: int, dt: float) -> bytes:
             (duty, ks, ks * dt, np.column_stack([ks * 0.01, -ks * 0.01])),
         ]
     )
-    return telemetry_frame(i, T0 + k0, batch)
+    writer.telemetry(i, T0 + k0, batch)
 
 
-def mixed_frames(dt: float) -> tuple[list[bytes], list[tuple[str, int]]]:
-    """Frames of every kind (one of them bad), and the (topic, k) the file must hold, in order."""
-    frames = [status_frame(1, T0, bus.encode_json({"state": "running", "k": 0, "t": 0.0}))]
+def mixed_stream(dt: float) -> tuple[list[RecordBatch], list[tuple[str, int]]]:
+    """A stream with messages of every kind (one of them bad), a batch per tick, and the
+    (topic, k) the file must hold, in order."""
+    writer = RecordWriter(NAMES)
+    writer.status(1, T0, bus.encode_json({"state": "running", "k": 0, "t": 0.0}))
     expected = [("/f1/status", 0)]
+    batches = []
     for k in range(6):
         for i, name in enumerate(NAMES):
             # at tick 3, f1 sends two values where its vehicle names three outputs: plain y
-            frames.append(agent_y_frame(i, k, dt, n_y=2 if (k, i) == (3, 1) else 3))
+            log_y(writer, i, k, dt, n_y=2 if (k, i) == (3, 1) else 3)
             expected.append((f"/{name}/y", k))
             if k:
                 expected += [(f"/{name}/u", k), (f"/{name}/x_hat", k)]
-        frames.append(tick_frames(k, dt)[-1])
+        log_tick(writer, k, dt)
         expected.append(("/orchestrator/ticks", k))
         if k == 2:
-            frames.append(telemetry(2, 0, 3, dt))
+            log_telemetry(writer, 2, 0, 3, dt)
             expected += [("/f2/telemetry/battery", j) for j in range(3)]
             expected += [("/f2/telemetry/wheel_duty", j) for j in range(3)]
-            frames.append(b"\x09\x02\x00\x00\x00ab")  # unknown kind: logged, counted, skipped
+            writer.y(0, T0, b"bad", b"")  # a y of 3 bytes: logged, counted, skipped
         if k == 4:
-            frames.append(event_frame(T0 + k, "f2", "lost", k=k, t=k * dt, detail="gone"))
+            writer.event(T0 + k, "f2", "lost", k=k, t=k * dt, detail="gone")
             expected.append(("/f2/status", k))
-    return frames, expected
+        batch = writer.take(T0 + k)
+        assert batch is not None
+        batches.append(batch)
+    batches.append(writer.close(T0 + 6))
+    return batches, expected
 
 
 def recorded(path: Path) -> list[tuple[str, int]]:
@@ -116,35 +112,35 @@ def recorded(path: Path) -> list[tuple[str, int]]:
     ]
 
 
-def record_in_process(path: Path, experiment: Experiment, feed: Iterator[bytes]) -> FrameRecorder:
+def record_in_process(path: Path, experiment: Experiment, feed: Iterator[bytes]) -> StreamRecorder:
     with Recorder(path, experiment, log_time_ns=T0) as recorder:
         record_vehicles(recorder, experiment, log_time_ns=T0)
-        frames = FrameRecorder(recorder, experiment)
-        reader = FrameReader()
+        stream = StreamRecorder(recorder, experiment)
         for data in feed:
-            frames.apply_all(reader.feed(data))
-        assert reader.pending == 0
-    return frames
+            stream.feed(data)
+        stream.feed(b"", whole=True)
+        assert stream.pending == 0
+    return stream
 
 
-def test_frames_are_recorded_in_frame_order_however_they_arrive(
+def test_messages_are_recorded_in_stream_order_however_they_arrive(
     tmp_path: Path, experiment: Experiment
 ) -> None:
-    frames, expected = mixed_frames(experiment.dt)
-    data = b"".join(frames)
-    one_by_one = tmp_path / "one.mcap"
-    with Recorder(one_by_one, experiment, log_time_ns=T0) as recorder:
+    batches, expected = mixed_stream(experiment.dt)
+    data = b"".join(batch.data for batch in batches)
+    by_batch = tmp_path / "batches.mcap"
+    with Recorder(by_batch, experiment, log_time_ns=T0) as recorder:
         record_vehicles(recorder, experiment, log_time_ns=T0)
-        frame_recorder = FrameRecorder(recorder, experiment)
-        for kind, frame in FrameReader().feed(data):
-            frame_recorder.apply(kind, frame)
-    assert frame_recorder.errors == 1 and frame_recorder.frames == len(frames)
-    assert recorded(one_by_one) == expected
+        stream = StreamRecorder(recorder, experiment)
+        for batch in batches:
+            stream.write(batch.data, seq=batch.seq)
+    assert stream.errors == 1 and stream.messages == sum(batch.count for batch in batches)
+    assert recorded(by_batch) == expected
     whole = tmp_path / "whole.mcap"
     assert record_in_process(whole, experiment, iter([data])).errors == 1
     pieces = tmp_path / "pieces.mcap"
     record_in_process(pieces, experiment, (data[i : i + 7] for i in range(0, len(data), 7)))
-    messages = list(iter_messages(one_by_one))
+    messages = list(iter_messages(by_batch))
     assert list(iter_messages(whole)) == messages == list(iter_messages(pieces))
     by_topic: dict[str, list[dict]] = {}
     for topic, log_time, message in messages:
@@ -152,7 +148,7 @@ def test_frames_are_recorded_in_frame_order_however_they_arrive(
         assert isinstance(message.pop("wall_ns"), int)
         assert log_time == T0 + round(message["t"] * 1e9)
         by_topic.setdefault(topic, []).append(message)
-    # named outputs beside the values, except f1's from the frame that did not match them on
+    # named outputs beside the values, except f1's from the y that did not match them on
     assert by_topic["/leader/y"][3] == {
         "k": 3, "t": 3 * experiment.dt, "values": [0.0, 1.0, math.pi], "x": 0.0, "y": 1.0,
         "psi": math.pi,
@@ -170,8 +166,29 @@ def test_frames_are_recorded_in_frame_order_however_they_arrive(
     }  # fmt: skip
 
 
-def frames_of_ticks(experiment: Experiment, ticks: range) -> bytes:
-    return b"".join(frame for k in ticks for frame in tick_frames(k, experiment.dt))
+class Ticks:
+    """The manager's side of a run of lead_follow: batches of whole ticks, handed to a sink."""
+
+    def __init__(self, experiment: Experiment) -> None:
+        self.dt = experiment.dt
+        self.writer = RecordWriter(NAMES)
+
+    def batch(self, ticks: range) -> RecordBatch:
+        for k in ticks:
+            for i in range(len(NAMES)):
+                log_y(self.writer, i, k, self.dt)
+            log_tick(self.writer, k, self.dt)
+        batch = self.writer.take(T0)
+        assert batch is not None
+        return batch
+
+    def hand(self, recorder: RecorderProcess, ticks: range, **kwargs: int) -> int:
+        """Hand ``ticks`` to ``recorder`` as one batch; returns its size [bytes]."""
+        batch = self.batch(ticks)
+        recorder.write(
+            batch.data, seq=batch.seq, count=batch.count, defines=batch.defines, **kwargs
+        )
+        return len(batch.data)
 
 
 def y_count(path: Path) -> int:
@@ -213,17 +230,16 @@ def test_write_does_not_wait_for_a_stopped_recorder(tmp_path: Path, experiment: 
         pid = recorder.process.pid
         os.kill(pid, signal.SIGSTOP)
         try:
-            batch = frames_of_ticks(experiment, range(100))
-            target = 2 * recorder.pipe_size + len(batch)  # far more than the pipe holds
+            stream = Ticks(experiment)
+            target = 2 * recorder.pipe_size  # far more than the pipe holds
             done = threading.Event()
 
             def feed() -> None:
                 nonlocal ticks
                 sent = 0
                 while sent < target:
-                    recorder.write(frames_of_ticks(experiment, range(ticks, ticks + 100)))
+                    sent += stream.hand(recorder, range(ticks, ticks + 100))
                     ticks += 100
-                    sent += len(batch)
                 done.set()
 
             feeder = threading.Thread(target=feed, daemon=True)
@@ -250,18 +266,22 @@ def test_write_waits_beyond_the_bound_and_says_so_once(
     try:
         recorder.wait_ready()
         pid = recorder.process.pid
-        batches = [frames_of_ticks(experiment, range(k, k + 20)) for k in range(0, ticks, 20)]
-        per_batch = len(batches[0])
+        stream = Ticks(experiment)
+        batches = [stream.batch(range(k, k + 20)) for k in range(0, ticks, 20)]
+        per_batch = len(batches[-1].data)
         n_batches = (recorder.pipe_size + 4 * bound) // per_batch + 1
-        extra = [
-            frames_of_ticks(experiment, range(k, k + 20))
-            for k in range(ticks, ticks + 20 * n_batches, 20)
+        batches += [
+            stream.batch(range(k, k + 20)) for k in range(ticks, ticks + 20 * n_batches, 20)
         ]
         ticks += 20 * n_batches
         os.kill(pid, signal.SIGSTOP)
         try:
             feeder = threading.Thread(
-                target=lambda: [recorder.write(b) for b in batches + extra], daemon=True
+                target=lambda: [
+                    recorder.write(b.data, seq=b.seq, count=b.count, defines=b.defines)
+                    for b in batches
+                ],
+                daemon=True,
             )
             with caplog.at_level(logging.WARNING):
                 feeder.start()
@@ -294,12 +314,13 @@ def test_a_killed_recorder_is_restarted_into_the_next_segment(
     try:
         recorder.wait_ready()
         first_pid = recorder.process.pid
+        stream = Ticks(experiment)
         for k in range(0, 2000, 50):
-            recorder.write(frames_of_ticks(experiment, range(k, k + 50)), count=200, tick=k)
+            stream.hand(recorder, range(k, k + 50), tick=k)
         assert wait_until(lambda: recorder.bytes_written > 0)  # some of it on disk
         os.killpg(first_pid, signal.SIGKILL)  # whatever it had not acknowledged is sent again
         for k in range(2000, 4000, 50):
-            recorder.write(frames_of_ticks(experiment, range(k, k + 50)), count=200, tick=k)
+            stream.hand(recorder, range(k, k + 50), tick=k)
         assert wait_until(lambda: recorder.restarts == 1)
     finally:
         assert recorder.close() == 0
@@ -327,15 +348,16 @@ def test_batches_written_while_the_new_recorder_starts_are_not_lost(
     k = 0
     try:
         recorder.wait_ready()
+        stream = Ticks(experiment)
         for _ in range(10):
-            recorder.write(frames_of_ticks(experiment, range(k, k + 5)), count=20, tick=k)
+            stream.hand(recorder, range(k, k + 5), tick=k)
             k += 5
         assert wait_until(lambda: recorder.bytes_written > 0)
         os.killpg(recorder.process.pid, signal.SIGKILL)
         # Small batches, one every ~ms, through the restart and beyond (bounded: 20 s).
         deadline, after = time.monotonic() + 20.0, 0
         while after < 200 and time.monotonic() < deadline:
-            recorder.write(frames_of_ticks(experiment, range(k, k + 1)), count=4, tick=k)
+            stream.hand(recorder, range(k, k + 1), tick=k)
             k += 1
             after += recorder.restarts == 1
             time.sleep(0.001)  # the pace of a manager's batches, not a synchronisation
@@ -358,11 +380,12 @@ def test_a_recorder_that_keeps_dying_is_given_up_and_the_loss_counted(
     )
     try:
         recorder.wait_ready()
-        recorder.write(frames_of_ticks(experiment, range(0, 50)), count=200, tick=0)
+        stream = Ticks(experiment)
+        stream.hand(recorder, range(0, 50), tick=0)
         assert wait_until(lambda: recorder.queued_bytes == 0)  # acknowledged: on disk
         os.killpg(recorder.process.pid, signal.SIGKILL)
         assert wait_until(lambda: bool(recorder.failed))
-        recorder.write(frames_of_ticks(experiment, range(50, 60)), count=40, tick=50)
+        stream.hand(recorder, range(50, 60), tick=50)
     finally:
         assert recorder.close() == -signal.SIGKILL
     assert failures == [recorder.failed] and "restarts used up" in failures[0]
@@ -383,11 +406,12 @@ def test_the_loss_is_counted_from_the_first_tick_a_batch_can_hold(
     recorder = RecorderProcess(path, experiment, log_time_ns=T0, max_restarts=0)
     try:
         recorder.wait_ready()
-        recorder.write(frames_of_ticks(experiment, range(0, 50)), count=200, tick=50)
+        stream = Ticks(experiment)
+        stream.hand(recorder, range(0, 50), tick=50)
         assert wait_until(lambda: recorder.queued_bytes == 0)  # acknowledged: on disk
         os.killpg(recorder.process.pid, signal.SIGKILL)
         assert wait_until(lambda: bool(recorder.failed))
-        recorder.write(frames_of_ticks(experiment, range(50, 60)), count=40, tick=60, first_tick=50)
+        stream.hand(recorder, range(50, 60), tick=60, first_tick=50)
     finally:
         assert recorder.close() == -signal.SIGKILL
     report = recorder.report()
@@ -413,31 +437,34 @@ def test_a_staged_recording_is_published_or_removed(tmp_path: Path, experiment: 
     try:
         recorder.wait_ready()
         recorder.publish()
-        recorder.write(frames_of_ticks(experiment, range(5)))
+        Ticks(experiment).hand(recorder, range(5))
     finally:
         assert recorder.close() == 0
     assert leader_ticks(fresh) == list(range(5))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fresh.mcap", "kept.mcap"]
 
 
-def test_y_frames_of_one_length_with_other_layouts(tmp_path: Path, experiment: Experiment):
-    """Frames of equal length but other sizes of y, u and x_hat are read with their own."""
+def test_y_messages_of_one_length_with_other_layouts(tmp_path: Path, experiment: Experiment):
+    """y messages of equal length but other sizes of y, u and x_hat are read with their own."""
     timing = bus.AgentTiming(compute_s=1e-4, actuate_s=2e-4, sense_s=3e-4, skipped=0)
     shapes = [
         (3, 2, 2), (3, 3, 1), (3, 1, 3), (3, 2, 2), (12, None, None), (7, 0, 0), (12, None, None),
         (3, 2, 2),
     ]  # fmt: skip
-    frames, sent = [], []
+    writer, sizes, sent = RecordWriter(NAMES), [], []
     for k, (n_y, n_u, n_x) in enumerate(shapes):
         y = [k + j / 10 for j in range(n_y)]
         u = None if n_u is None else [-k - j / 10 for j in range(n_u)]
         x_hat = None if n_x is None else [100 + j for j in range(n_x)]
         report = b"" if u is None else bus.encode_report(timing, np.array(u), np.array(x_hat))
-        frames.append(y_frame(2, T0 + k, bus.encode_vector(k, k * 0.1, y), report))
+        payload = bus.encode_vector(k, k * 0.1, y)
+        writer.y(2, T0 + k, payload, report)
+        sizes.append(len(payload) + len(report))
         sent.append((y, u or [], x_hat if u else []))
-    assert len({len(frame) for frame in frames}) == 1  # one length, five layouts
+    assert len(set(sizes)) == 1  # one length, five layouts
     path = tmp_path / "layouts.mcap"
-    assert record_in_process(path, experiment, iter([b"".join(frames)])).errors == 0
+    data = writer.close(T0).data
+    assert record_in_process(path, experiment, iter([data])).errors == 0
     got: dict[str, dict[int, list]] = {}
     for topic, _, message in iter_messages(path):
         got.setdefault(topic, {})[message["k"]] = message["values"]
