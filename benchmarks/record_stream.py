@@ -17,9 +17,10 @@ same process: the plain ``mcap`` ``Writer`` (zstd, same chunk size) fed ``json.d
 same message dicts (built beforehand, so the baseline does no stream decoding at all).
 
 The manager's side: the ``manager`` row is the CPU of the ``RecordWriter`` calls and
-``take()`` (what the manager spends per message and per tick to make the batches; the bus
-payloads are encoded beforehand, untimed, as the agents do that), and the ``process`` row says
-what the feeding side spends per tick in ``RecorderProcess.write``.
+``take()`` that make the batches (per recorded message like the other rows; its note gives it
+per tick and per message of the stream; the bus payloads are encoded beforehand, untimed, as
+the agents do that), and the ``process`` row says what the feeding side spends per tick in
+``RecorderProcess.write``.
 
 Writer alone (the issue's target): CPU [µs] per message of foxglove-sdk's MCAP writer (what
 records every run) against the hand-written chunk writer hilswarm had before

@@ -24,7 +24,16 @@ class Sink:
         self.clock = clock
         self.batches: list[tuple[float, int]] = []
 
-    def write(self, data: bytes, *, count: int = 0, tick: int = -1, first_tick: int = -1) -> None:
+    def write(
+        self,
+        data: bytes,
+        *,
+        seq: int,
+        count: int = 0,
+        tick: int = -1,
+        first_tick: int = -1,
+        defines: bool = False,
+    ) -> None:
         self.batches.append((self.clock.now, count))
 
 
