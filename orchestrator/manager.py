@@ -221,6 +221,8 @@ class InstanceManager:
         self._flush_from = 0.0  # realtime: a tick completing from then on carries the records
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
+        # One batch of records handed over at a time (taken before _lock, never inside it).
+        self._hand_over_guard = threading.Lock()
         # realtime: one tick in flight; self-clocked: also the next one, opened in advance
         self.window = 1 if self._realtime else experiment.lockstep_window
         if self.self_clocked:
@@ -585,23 +587,28 @@ class InstanceManager:
         sink, records = self._sink, self._records
         if sink is None or records is None:
             return
-        with self._lock:
-            if records.closed:
-                return
-            batch = records.close(self._wall_ns()) if final else records.take(self._wall_ns())
+        with self._hand_over_guard:  # batches in the order of their cuts
+            with self._lock:
+                if records.closed:
+                    return
+                kept = records.cut()
+                # the batch holds records gathered since the last one: of its tick on
+                first, tick = self._records_since, self._tick.base
+                if kept or final:
+                    self._records_since = tick
+            # logging the MCAP messages lets go of the GIL: never under the callbacks' lock
+            now = self._wall_ns()
+            batch = records.write_end(kept, now) if final else records.write(kept, now)
             if batch is None:
                 return
-            # the batch holds records gathered since the last one: of its tick on
-            first, tick = self._records_since, self._tick.base
-            self._records_since = tick
-        sink.write(
-            batch.data,
-            seq=batch.seq,
-            count=batch.count,
-            tick=tick,
-            first_tick=first,
-            defines=batch.defines,
-        )
+            sink.write(
+                batch.data,
+                seq=batch.seq,
+                count=batch.count,
+                tick=tick,
+                first_tick=first,
+                defines=batch.defines,
+            )
 
     def request_stop(self, reason: str) -> None:
         """Ask the run to stop (thread-safe, signal-safe): agents to safe, then stopped."""

@@ -181,10 +181,22 @@ def writer_options() -> MCAPWriteOptions:
     )
 
 
-class RecordWriter:
-    """The manager's side of the record stream: logs messages, hands out numbered batches.
+#: A message kept: the function that logs it (None: a ``y``) and its arguments.
+_Kept = tuple[Callable[..., None] | None, tuple[Any, ...]]
 
-    Not thread-safe: the caller serialises the calls (the manager holds its lock).
+
+class RecordWriter:
+    """The manager's side of the record stream: keeps messages, hands out numbered batches.
+
+    The message methods (:meth:`y`, :meth:`status`, ...) only keep what they are given (a tuple
+    appended to a list: the bus callbacks stay short). :meth:`write` logs what :meth:`cut`
+    took on the MCAP writer and returns it as the next batch (:meth:`write_end`: the last,
+    which ends the stream). foxglove-sdk's log call lets go of the GIL, so it runs there,
+    outside the caller's lock, never inside a bus callback.
+
+    Threads: the message methods and :meth:`cut` must be serialised by the caller (the
+    manager calls them under its lock); :meth:`write` and :meth:`write_end` by one thread at a
+    time, in the order of the cuts. :meth:`take` and :meth:`close` do both, for one thread.
 
     Args:
         names: the experiment's agent names, in order (an agent's index is its position).
@@ -200,7 +212,11 @@ class RecordWriter:
         self._channels: list[Channel] = []
         self._logs: dict[tuple[str, int, str], Callable[[bytes, int], None]] = {}
         self._y_logs = [self._log_of(Y, i) for i in range(len(self.names))]
-        self._count = 0
+        # what the message methods keep: (emit, its arguments); emit None: a y (the most
+        # frequent message, logged inline)
+        self._kept: list[_Kept] = []
+        self._emit_bound = self._emit
+        self._emit_late_bound = self._emit_late
         self._defines = False
         self._seq = 0
         self.closed = False
@@ -245,47 +261,44 @@ class RecordWriter:
 
     @property
     def pending(self) -> int:
-        """Messages logged since the last batch was taken."""
-        return self._count
+        """Messages kept since the last cut."""
+        return len(self._kept)
+
+    # -- keeping (cheap: the bus callbacks call these) ---------------------------------------
 
     def y(self, agent: int, log_time_ns: int, payload: bytes, attachment: bytes) -> None:
         """An agent's ``y`` message (payload and tick-report attachment as received)."""
-        self._y_logs[agent](_Y_HEAD.pack(len(payload)) + payload + attachment, log_time_ns)
-        self._count += 1
+        self._kept.append((None, (agent, log_time_ns, payload, attachment)))
 
     def late(self, agent: int, k: int, log_time_ns: int, answer_s: float) -> None:
         """An answer (``y_k`` of ``agent``) that came after tick ``k`` closed without it,
         ``answer_s`` [s] after the tick's send."""
-        self._log_of(LATE, agent)(_LATE.pack(k, answer_s), log_time_ns)
-        self._count += 1
+        self._kept.append((self._emit_late_bound, (agent, k, log_time_ns, answer_s)))
 
     def status(self, agent: int, log_time_ns: int, payload: bytes) -> None:
         """An agent's status message (its JSON as received)."""
-        self._log_of(STATUS, agent)(payload, log_time_ns)
-        self._count += 1
+        self._kept.append((self._emit_bound, (STATUS, agent, "", log_time_ns, payload)))
 
     def vector(self, agent: int, log_time_ns: int, leaf: str, payload: bytes) -> None:
         """A vector an agent publishes on another key (``telemetry/<channel>``)."""
-        self._log_of(VECTOR, agent, leaf)(payload, log_time_ns)
-        self._count += 1
+        self._kept.append((self._emit_bound, (VECTOR, agent, leaf, log_time_ns, payload)))
 
     def telemetry(self, agent: int, log_time_ns: int, payload: bytes) -> None:
         """An agent's telemetry batch (as received; decoded by the recorder)."""
-        self._log_of(TELEMETRY, agent)(payload, log_time_ns)
-        self._count += 1
+        self._kept.append((self._emit_bound, (TELEMETRY, agent, "", log_time_ns, payload)))
 
     def gateway(self, log_time_ns: int, leaf: str, payload: bytes) -> None:
         """An XBee gateway message (``gateway/<leaf>``, JSON as sent)."""
-        self._log_of(GATEWAY, -1, leaf)(payload, log_time_ns)
-        self._count += 1
+        self._kept.append((self._emit_bound, (GATEWAY, -1, leaf, log_time_ns, payload)))
 
     def event(
         self, log_time_ns: int, agent: str, state: str, *, k: int, t: float, detail: str
     ) -> None:
         """A status the manager records itself (``agent`` may be :data:`ORCHESTRATOR`)."""
         message = {"agent": agent, "state": state, "k": int(k), "t": float(t), "detail": detail}
-        self._log_of(EVENT)(json.dumps(message).encode(), log_time_ns)
-        self._count += 1
+        self._kept.append(
+            (self._emit_bound, (EVENT, -1, "", log_time_ns, json.dumps(message).encode()))
+        )
 
     def tick(
         self,
@@ -305,33 +318,59 @@ class RecordWriter:
             + struct.pack(f"<{len(late) + len(missing)}H", *late, *missing)
             + np.ascontiguousarray(answer_s, dtype="<f8").tobytes()
         )
-        self._log_of(TICK)(data, log_time_ns)
-        self._count += 1
+        self._kept.append((self._emit_bound, (TICK, -1, "", log_time_ns, data)))
 
-    def take(self, log_time_ns: int) -> RecordBatch | None:
-        """The messages logged since the last batch, as the next batch (``None``: none)."""
-        if self.closed or not self._count:
+    def cut(self) -> list[_Kept]:
+        """The messages kept so far (the next batch's), in order; keeping starts afresh."""
+        kept, self._kept = self._kept, []
+        return kept
+
+    # -- writing (the MCAP writer) -----------------------------------------------------------
+
+    def _emit_late(self, agent: int, k: int, log_time_ns: int, answer_s: float) -> None:
+        self._log_of(LATE, agent)(_LATE.pack(k, answer_s), log_time_ns)
+
+    def _emit(self, kind: str, agent: int, leaf: str, log_time_ns: int, data: bytes) -> None:
+        self._log_of(kind, agent, leaf)(data, log_time_ns)
+
+    def write(self, kept: list[_Kept], log_time_ns: int) -> RecordBatch | None:
+        """Log ``kept`` (a :meth:`cut`) as the next batch (``None``: nothing kept)."""
+        if self.closed or not kept:
             return None
-        self._end_batch(log_time_ns)
+        self._log_all(kept, log_time_ns)
         self._writer.flush()
-        return self._batch()
+        return self._batch(len(kept))
 
-    def close(self, log_time_ns: int) -> RecordBatch:
-        """End the stream (DataEnd, Footer): the last batch, with what was not taken yet."""
+    def write_end(self, kept: list[_Kept], log_time_ns: int) -> RecordBatch:
+        """End the stream (DataEnd, Footer): the last batch, with ``kept`` (a :meth:`cut`)."""
         if self.closed:
             raise ValueError("the record stream is closed")
-        self._end_batch(log_time_ns)
+        self._log_all(kept, log_time_ns)
         self._writer.close()
         self.closed = True
-        return self._batch()
+        return self._batch(len(kept))
 
-    def _end_batch(self, log_time_ns: int) -> None:
+    def take(self, log_time_ns: int) -> RecordBatch | None:
+        """:meth:`cut` and :meth:`write` at once (for a caller on one thread)."""
+        return self.write(self.cut(), log_time_ns)
+
+    def close(self, log_time_ns: int) -> RecordBatch:
+        """:meth:`cut` and :meth:`write_end` at once (for a caller on one thread)."""
+        return self.write_end(self.cut(), log_time_ns)
+
+    def _log_all(self, kept: list[_Kept], log_time_ns: int) -> None:
+        y_logs, pack = self._y_logs, _Y_HEAD.pack
+        for emit, args in kept:
+            if emit is None:  # a y: agent, log time, payload, attachment
+                payload = args[2]
+                y_logs[args[0]](pack(len(payload)) + payload + args[3], args[1])
+            else:
+                emit(*args)
         self._seq += 1
         self._log_of(BATCH)(_SEQ.pack(self._seq), log_time_ns)
 
-    def _batch(self) -> RecordBatch:
-        batch = RecordBatch(self._spool.take(), self._seq, self._count, self._defines)
-        self._count = 0
+    def _batch(self, count: int) -> RecordBatch:
+        batch = RecordBatch(self._spool.take(), self._seq, count, self._defines)
         self._defines = False
         return batch
 
