@@ -2,11 +2,11 @@
 
 The manager must not spend its tick on JSON or MCAP chunking. It keeps the bus messages it
 receives as they came (the agents' ``y`` payloads with their tick-report attachments, status
-JSON, telemetry batches), adds one small message per tick with the tick's timing account, and
-logs each on a channel of an **MCAP stream** written by foxglove-sdk's MCAP writer
-(:class:`RecordWriter`: no chunks, no compression, no indexes, so nothing seeks back and the
-bytes can go down a pipe as they are made). Every flush period the manager takes what was
-logged as one numbered batch and hands it to a :class:`RecordSink`: usually the pipe of the
+JSON, telemetry batches) and one small message per tick with the tick's timing account. Every
+flush period it logs what it kept on the channels of an **MCAP stream** written by
+foxglove-sdk's MCAP writer (:class:`RecordWriter`: no chunks, no compression, no indexes, so
+nothing seeks back and the bytes can go down a pipe as they are made), as one numbered batch,
+and hands the batch to a :class:`RecordSink`: usually the pipe of the
 recorder process (:mod:`hilswarm.orchestrator.recorder_process`), which decodes it with a
 :class:`~hilswarm.orchestrator.stream_recorder.StreamRecorder` and writes the run's MCAP file
 (JSON, chunked, compressed, the topics of ``docs/recording.md``).
