@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 from hilswarm.agents import bus
 from hilswarm.agents.mcap_io import iter_messages
+from hilswarm.orchestrator import record_stream
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
 from hilswarm.orchestrator.record_stream import RecordBatch, RecordWriter
 from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
@@ -290,14 +291,7 @@ def _batch_ticks(batch: RecordBatch) -> tuple[int, int]:
 def hand_over(process: RecorderProcess, batch: RecordBatch) -> None:
     """Hand ``batch`` to the recorder process, as the manager does."""
     tick, first_tick = _batch_ticks(batch)
-    process.write(
-        batch.data,
-        seq=batch.seq,
-        count=batch.count,
-        tick=tick,
-        first_tick=first_tick,
-        defines=batch.defines,
-    )
+    record_stream.hand_over(process, batch, tick=tick, first_tick=first_tick)
 
 
 def run_recorder(

@@ -104,7 +104,7 @@ def pipe_figure(n: int, ticks: int) -> float:
     """CPU [µs] per message of the manager's pipe path: ``RecordWriter.y``, ``take()``,
     ``RecorderProcess.write``."""
     from hilswarm.orchestrator.experiment import load_experiment  # noqa: PLC0415
-    from hilswarm.orchestrator.record_stream import RecordWriter  # noqa: PLC0415
+    from hilswarm.orchestrator.record_stream import RecordWriter, hand_over  # noqa: PLC0415
     from hilswarm.orchestrator.recorder_process import RecorderProcess  # noqa: PLC0415
 
     graphs = Path(__file__).resolve().parents[1] / "graphs"
@@ -124,14 +124,7 @@ def pipe_figure(n: int, ticks: int) -> float:
                 if k % 2:
                     batch = writer.take(time.time_ns())
                     if batch is not None:
-                        process.write(
-                            batch.data,
-                            seq=batch.seq,
-                            count=batch.count,
-                            tick=k,
-                            first_tick=first,
-                            defines=batch.defines,
-                        )
+                        hand_over(process, batch, tick=k, first_tick=first)
                     first = k + 1
             used = cpu_s() - start
             # the end of the stream (not timed: once per run)

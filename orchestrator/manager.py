@@ -58,7 +58,7 @@ from hilswarm.agents.tick_engine import is_warmup, start_lead
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
 from hilswarm.orchestrator.outcome import COUNTER_NAMES
-from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink, RecordWriter
+from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink, RecordWriter, hand_over
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.run_summary import AgentEvent, RunSummary
 from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
@@ -601,14 +601,7 @@ class InstanceManager:
             batch = records.write_end(kept, now) if final else records.write(kept, now)
             if batch is None:
                 return
-            sink.write(
-                batch.data,
-                seq=batch.seq,
-                count=batch.count,
-                tick=tick,
-                first_tick=first,
-                defines=batch.defines,
-            )
+            hand_over(sink, batch, tick=tick, first_tick=first)
 
     def request_stop(self, reason: str) -> None:
         """Ask the run to stop (thread-safe, signal-safe): agents to safe, then stopped."""

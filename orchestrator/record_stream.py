@@ -128,6 +128,21 @@ class RecordSink(Protocol):
         gathering them; -1: unknown; ``defines``: it holds Schema or Channel records)."""
 
 
+def hand_over(
+    sink: RecordSink, batch: RecordBatch, *, tick: int = -1, first_tick: int = -1
+) -> None:
+    """Hand ``batch`` to ``sink`` (made at the manager's ``tick``, of ticks from ``first_tick``
+    on; -1: unknown)."""
+    sink.write(
+        batch.data,
+        seq=batch.seq,
+        count=batch.count,
+        tick=tick,
+        first_tick=first_tick,
+        defines=batch.defines,
+    )
+
+
 class _Spool(io.RawIOBase):
     """The file the MCAP writer writes into: it keeps the bytes until they are taken, and
     refuses to seek back (the stream's writer options never need it)."""

@@ -112,6 +112,8 @@ def ledger_times(
     return times, int(skipped), int(retries)
 
 
+#: Vector messages to write: topic, k, t [s], values, log time [ns].
+_Rows = list[tuple[str, int, float, Sequence[float], int]]
 #: A channel's route: kind, agent index (-1: none), key leaf ("" : none).
 _Route = tuple[str, int, str]
 #: A record read: opcode, body start, body end, a message's head (None: not a message).
@@ -166,7 +168,7 @@ class StreamRecorder:
         # The same for the u and x_hat topics, by topic.
         self._topic_widths: dict[str, int | None] = {}
         # Vector messages (topic, k, t, values, log time) not yet handed to the recorder.
-        self._rows: list[tuple[str, int, float, Sequence[float], int]] = []
+        self._rows: _Rows = []
         # Telemetry topics seen: topic -> field names it was registered with (None: plain).
         self._telemetry_topics: dict[str, tuple[str, ...] | None] = {}
         # The stream's channels: id -> route; the batch marker's channel id.
@@ -345,7 +347,7 @@ class StreamRecorder:
         i: int,
         log_ns: int,
         data: bytes,
-        rows: list[tuple[str, int, float, Sequence[float], int]],
+        rows: _Rows,
     ) -> None:
         k, t, values, timing, u, x_hat = self._unpack_y(data)
         self._timings[i][k] = timing
@@ -363,7 +365,7 @@ class StreamRecorder:
 
     def _signal_row(
         self,
-        rows: list[tuple[str, int, float, Sequence[float], int]],
+        rows: _Rows,
         row: tuple[str, int, float, Sequence[float], int],
     ) -> None:
         """Queue ``u``/``x_hat``; one whose size does not match its names is recorded plain."""
@@ -569,7 +571,7 @@ class StreamRecorder:
         i: int,
         log_ns: int,
         data: bytes,
-        rows: list[tuple[str, int, float, Sequence[float], int]],
+        rows: _Rows,
     ) -> None:
         agent = self.names[i]
         for channel in bus.decode_telemetry_batch(data):
@@ -597,7 +599,7 @@ class StreamRecorder:
         agent: str,
         samples: Iterable[tuple[int, float, Sequence[float]]],
         log_ns: int,
-        rows: list[tuple[str, int, float, Sequence[float], int]],
+        rows: _Rows,
     ) -> None:
         """``/<agent>/pose`` (foxglove.PoseInFrame) from the agent's mocap rows."""
         if rows:

@@ -20,6 +20,7 @@ from hilswarm.orchestrator.record_stream import (
     PROFILE,
     RecordBatch,
     RecordWriter,
+    hand_over,
     records,
 )
 from hilswarm.orchestrator.recorder import Recorder
@@ -133,7 +134,7 @@ def test_the_stream_in_process_gives_the_topics_of_the_contract(
     with Recorder(path, experiment, log_time_ns=T0) as recorder:
         stream = StreamRecorder(recorder, experiment)
         for batch in stream_of_a_run(experiment):
-            stream.write(batch.data, seq=batch.seq, count=batch.count, defines=batch.defines)
+            hand_over(stream, batch)
         assert (stream.messages, stream.errors) == (5 * 4 + 4, 0)
     check_recording(path, experiment)
 
@@ -195,7 +196,7 @@ def test_the_recorder_process_records_the_stream_and_closes_the_file(
     try:
         recorder.wait_ready()
         for batch in stream_of_a_run(experiment):
-            recorder.write(batch.data, seq=batch.seq, count=batch.count, defines=batch.defines)
+            hand_over(recorder, batch)
     finally:
         assert recorder.close() == 0
     with path.open("rb") as f:

@@ -19,7 +19,7 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.orchestrator.cpu_priority import autogroup_niceness
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
-from hilswarm.orchestrator.record_stream import RecordBatch, RecordWriter
+from hilswarm.orchestrator.record_stream import RecordBatch, RecordWriter, hand_over
 from hilswarm.orchestrator.recorder import Recorder, record_vehicles
 from hilswarm.orchestrator.recorder_process import RECORDER_NICE, RecorderProcess
 from hilswarm.orchestrator.stream_recorder import StreamRecorder
@@ -185,9 +185,7 @@ class Ticks:
     def hand(self, recorder: RecorderProcess, ticks: range, **kwargs: int) -> int:
         """Hand ``ticks`` to ``recorder`` as one batch; returns its size [bytes]."""
         batch = self.batch(ticks)
-        recorder.write(
-            batch.data, seq=batch.seq, count=batch.count, defines=batch.defines, **kwargs
-        )
+        hand_over(recorder, batch, **kwargs)
         return len(batch.data)
 
 
@@ -277,10 +275,7 @@ def test_write_waits_beyond_the_bound_and_says_so_once(
         os.kill(pid, signal.SIGSTOP)
         try:
             feeder = threading.Thread(
-                target=lambda: [
-                    recorder.write(b.data, seq=b.seq, count=b.count, defines=b.defines)
-                    for b in batches
-                ],
+                target=lambda: [hand_over(recorder, b) for b in batches],
                 daemon=True,
             )
             with caplog.at_level(logging.WARNING):
