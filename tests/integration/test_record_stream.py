@@ -219,3 +219,28 @@ def test_recorder_process_refuses_an_unwritable_file(
             recorder.wait_ready(timeout_s=60)
     finally:
         assert recorder.close() != 0
+
+
+def test_the_message_methods_only_keep_and_batches_follow_their_cuts(
+    experiment: Experiment,
+) -> None:
+    """The manager's bus callbacks call the message methods under its lock: they must only keep
+    (foxglove-sdk's log call lets go of the GIL); the MCAP records are made at the write, in the
+    order of the cuts, whichever thread writes."""
+    writer = RecordWriter(experiment.agent_names)
+    payload = bus.encode_vector(0, 0.0, [1.0, 2.0, 3.0])
+    writer.y(0, T0, payload, b"")
+    writer.status(1, T0, bus.encode_json({"state": "running"}))
+    assert writer.pending == 2
+    first = writer.cut()
+    writer.y(2, T0 + 1, payload, b"")
+    second = writer.cut()
+    assert writer.pending == 0 and len(first) == 2 and len(second) == 1
+    batches = [writer.write(first, T0), writer.write_end(second, T0 + 1)]
+    assert [(b.seq, b.count, b.defines) for b in batches if b] == [(1, 2, True), (2, 1, True)]
+    reader = make_reader(io.BytesIO(b"".join(b.data for b in batches if b)))
+    topics = [channel.topic for _, channel, _ in reader.iter_messages()]
+    assert topics == [
+        "agent/leader/y", "agent/f1/status", "stream/batch", "agent/f2/y", "stream/batch"
+    ]  # fmt: skip
+    assert writer.write([], T0) is None  # closed: nothing more
