@@ -210,7 +210,8 @@ class InstanceManager:
         if isinstance(recorder, Recorder):
             recorder = StreamRecorder(recorder, experiment)
         self._sink: RecordSink | None = recorder
-        # The record stream (under _lock): what the bus brought, for the sink.
+        # The record stream: what the bus brought, for the sink (kept and cut under _lock,
+        # written to MCAP under _hand_over_guard).
         self._records = RecordWriter(self.names) if recorder is not None else None
         self._record_ticks = record_ticks and recorder is not None
         self._flush_period_s = flush_period_s
