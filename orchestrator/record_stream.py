@@ -90,10 +90,12 @@ _KINDS: dict[str, tuple[str, str, str]] = {
     BATCH: ("hilswarm.batch", "hilswarm.record.batch", "uint64 seq"),
 }
 
-_Y_HEAD = struct.Struct("<I")
-_LATE = struct.Struct("<qd")
-_TICK_HEAD = struct.Struct("<qdddHH")
-_SEQ = struct.Struct("<Q")
+#: Message layouts of the stream (the channel list above): a ``y`` message's head (payload
+#: length), a ``late`` message, a ``tick`` message's head, a batch marker.
+Y_HEAD = struct.Struct("<I")
+LATE_LAYOUT = struct.Struct("<qd")
+TICK_HEAD = struct.Struct("<qdddHH")
+BATCH_SEQ = struct.Struct("<Q")
 
 #: Agent index of events that concern the orchestrator itself (``/orchestrator/status``).
 ORCHESTRATOR = "orchestrator"
@@ -329,7 +331,7 @@ class RecordWriter:
     ) -> None:
         """Tick ``k``'s timing account (times [s]; NaN: not complete / no answer)."""
         data = (
-            _TICK_HEAD.pack(k, scheduled_s, send_delay_s, completion_s, len(late), len(missing))
+            TICK_HEAD.pack(k, scheduled_s, send_delay_s, completion_s, len(late), len(missing))
             + struct.pack(f"<{len(late) + len(missing)}H", *late, *missing)
             + np.ascontiguousarray(answer_s, dtype="<f8").tobytes()
         )
@@ -343,7 +345,7 @@ class RecordWriter:
     # -- writing (the MCAP writer) -----------------------------------------------------------
 
     def _emit_late(self, agent: int, k: int, log_time_ns: int, answer_s: float) -> None:
-        self._log_of(LATE, agent)(_LATE.pack(k, answer_s), log_time_ns)
+        self._log_of(LATE, agent)(LATE_LAYOUT.pack(k, answer_s), log_time_ns)
 
     def _emit(self, kind: str, agent: int, leaf: str, log_time_ns: int, data: bytes) -> None:
         self._log_of(kind, agent, leaf)(data, log_time_ns)
@@ -374,7 +376,7 @@ class RecordWriter:
         return self.write_end(self.cut(), log_time_ns)
 
     def _log_all(self, kept: list[_Kept], log_time_ns: int) -> None:
-        y_logs, pack = self._y_logs, _Y_HEAD.pack
+        y_logs, pack = self._y_logs, Y_HEAD.pack
         for emit, args in kept:
             if emit is None:  # a y: agent, log time, payload, attachment
                 payload = args[2]
@@ -382,7 +384,7 @@ class RecordWriter:
             else:
                 emit(*args)
         self._seq += 1
-        self._log_of(BATCH)(_SEQ.pack(self._seq), log_time_ns)
+        self._log_of(BATCH)(BATCH_SEQ.pack(self._seq), log_time_ns)
 
     def _batch(self, count: int) -> RecordBatch:
         batch = RecordBatch(self._spool.take(), self._seq, count, self._defines)

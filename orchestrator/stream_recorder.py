@@ -29,9 +29,12 @@ from hilswarm.orchestrator import pose_topic
 from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.record_stream import (
     BATCH,
+    BATCH_SEQ,
     EVENT,
     GATEWAY,
     LATE,
+    LATE_LAYOUT,
+    MAGIC,
     MESSAGE,
     OP_CHANNEL,
     OP_HEADER,
@@ -40,7 +43,9 @@ from hilswarm.orchestrator.record_stream import (
     STATUS,
     TELEMETRY,
     TICK,
+    TICK_HEAD,
     VECTOR,
+    Y_HEAD,
     Y,
     records,
 )
@@ -62,13 +67,9 @@ logger = logging.getLogger(__name__)
 #: :func:`~hilswarm.agents.bus.encode_report` (compute_s, actuate_s, sense_s, link_s, skipped,
 #: retries, n_u, n_x; after u and x_hat, for a link through the XBee gateway, the 2 float64
 #: gateway_s, radio_s).
-_Y_HEAD = struct.Struct("<I")
 _VECTOR = struct.Struct("<qd")
 _REPORT = struct.Struct("<ddddHHHH")
 _STAGES_SIZE = 16
-_TICK_HEAD = struct.Struct("<qdddHH")
-_LATE = struct.Struct("<qd")
-_SEQ = struct.Struct("<Q")
 #: The timing of a y without a report.
 _NO_TIMING = (0.0, 0.0, 0.0, 0.0, 0, 0)
 _FLOATS: dict[int, struct.Struct] = {}
@@ -216,7 +217,7 @@ class StreamRecorder:
             if opcode == OP_MESSAGE:
                 head = unpack_message(buffer, start)
                 if head[0] == self._batch_channel:
-                    last_seq = _SEQ.unpack_from(buffer, start + MESSAGE.size)[0]
+                    last_seq = BATCH_SEQ.unpack_from(buffer, start + MESSAGE.size)[0]
                     through, consumed = len(parsed) + 1, stop
             elif opcode == OP_CHANNEL:
                 self._define(buffer[start:stop])
@@ -226,7 +227,7 @@ class StreamRecorder:
         if whole:
             through = len(parsed)
             consumed = parsed[-1][2] if parsed else 0
-            if buffer[consumed:] == b"\x89MCAP0\r\n":
+            if buffer[consumed:] == MAGIC:
                 consumed = len(buffer)  # the closing magic
         self._pending = buffer[consumed:]
         self._apply(buffer, parsed[:through])
@@ -415,8 +416,8 @@ class StreamRecorder:
                         numbers[1], numbers[2], numbers[3:end_y],
                         numbers[end_y : end_y + 6], numbers[end_y + 8 : u_end], numbers[u_end:],
                     )  # fmt: skip
-        (n_payload,) = _Y_HEAD.unpack_from(data)
-        start = _Y_HEAD.size
+        (n_payload,) = Y_HEAD.unpack_from(data)
+        start = Y_HEAD.size
         n_y, odd = divmod(n_payload - _VECTOR.size, 8)
         if n_y < 0 or odd or start + n_payload > len(data):
             raise RecordingError(f"y payload of {n_payload} bytes: expected 16 + 8 per value")
@@ -455,8 +456,8 @@ class StreamRecorder:
         self.recorder.write_message(topic, message, log_time_ns=log_ns)
 
     def _tick(self, log_ns: int, data: bytes) -> None:
-        k, scheduled, send_delay, completion, n_late, n_missing = _TICK_HEAD.unpack_from(data)
-        offset = _TICK_HEAD.size
+        k, scheduled, send_delay, completion, n_late, n_missing = TICK_HEAD.unpack_from(data)
+        offset = TICK_HEAD.size
         indices = struct.unpack_from(f"<{n_late + n_missing}H", data, offset)
         offset += 2 * (n_late + n_missing)
         n = len(self.names)
@@ -506,7 +507,7 @@ class StreamRecorder:
         self._ticks_registered = True
 
     def _late(self, i: int, log_ns: int, data: bytes) -> None:
-        k, answer = _LATE.unpack_from(data)
+        k, answer = LATE_LAYOUT.unpack_from(data)
         times, skipped, retries = ledger_times(answer, self._timings[i].pop(k, None))
         fields = LEDGER_FIELDS + GATEWAY_LEDGER_FIELDS
         message: dict[str, Any] = {"k": k, "t": k * self.dt, "values": [], "agent": self.names[i]}
