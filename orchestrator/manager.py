@@ -53,14 +53,14 @@ import numpy as np
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
-from hilswarm.agents.mocap import frame_clock
 from hilswarm.agents.tick_engine import is_warmup, start_lead
 from hilswarm.orchestrator.experiment import Experiment
-from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
-from hilswarm.orchestrator.outcome import COUNTER_NAMES
-from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink, RecordWriter, hand_over
+from hilswarm.orchestrator.frame_schedule import FrameSchedule
+from hilswarm.orchestrator.record_feed import RecordFeed
+from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.run_summary import AgentEvent, RunSummary
+from hilswarm.orchestrator.run_tally import RunTally
 from hilswarm.orchestrator.status_display import StatusDisplay, StatusSnapshot
 from hilswarm.orchestrator.stream_recorder import StreamRecorder
 from hilswarm.orchestrator.tick_window import TickAccount, TickWindow
@@ -73,10 +73,6 @@ DEFAULT_START_TIMEOUT_S = 60.0
 DEFAULT_ANSWER_TIMEOUT_S = 5.0
 #: Default bound on waiting for agents to stop after the stop command [s].
 DEFAULT_STOP_TIMEOUT_S = 5.0
-#: Realtime: ticks per block in which late ticks are counted for the overload warning.
-OVERLOAD_BLOCK_TICKS = 100
-#: Realtime: the overload warning is given when more than this fraction of a block was late.
-OVERLOAD_LATE_FRACTION = 0.1
 #: Late ticks above this fraction of the planned ticks degrade the outcome (exit status 3)
 #: when the experiment does not set ``max_late_fraction``.
 DEFAULT_MAX_LATE_FRACTION = 0.01
@@ -88,8 +84,6 @@ SCHEDULE_REPEAT_S = 1.0
 #: Self-clocked realtime: the frame lock moving the next tick's due time by more than this [s]
 #: sends a new schedule.
 SCHEDULE_MOVE_S = 20e-6
-#: Realtime with a frame lock: period of the ``frame_lock`` record while locked [s].
-FRAME_LOCK_REPORT_S = 10.0
 
 #: At the stop, how long an agent's last status (``stopped``, with its final counters) may
 #: still take to arrive after its liveliness token went [s]: the token's end travels as a
@@ -99,19 +93,6 @@ STOP_STATUS_GRACE_S = 0.5
 # Event kinds of the ticking thread's queue (rare: not one per message).
 _ALIVE, _GONE, _CONTROL, _STOP, _SAFE, _COMPLETE, _STOPPED = range(7)
 _K = struct.Struct("<q")
-
-
-def _counts(value: Any) -> int | dict[str, int] | None:
-    """An agent's counter as reported (a count, or counts by key); ``None``: not a counter."""
-    if isinstance(value, int) and not isinstance(value, bool):
-        return value
-    if isinstance(value, dict):
-        return {
-            str(key): count
-            for key, count in value.items()
-            if isinstance(count, int) and not isinstance(count, bool)
-        }
-    return None
 
 
 class ManagerError(Exception):
@@ -124,9 +105,12 @@ class InstanceManager:
     Per tick the manager's own work is small and allocation-light: each agent's ``y`` is
     accounted in the bus callback that receives it (its tick index read from the first 8
     bytes; nothing else decoded), the tick's account is kept in preallocated arrays, and what
-    is recorded goes out as raw frames, in batches, to ``recorder`` (usually the recorder
+    is recorded is kept as it came and goes on the MCAP record stream, in batches
+    (:mod:`hilswarm.orchestrator.record_feed`), to ``recorder`` (usually the recorder
     process, see :mod:`hilswarm.orchestrator.recorder_process`), which does the decoding and
-    JSON encoding on its own core.
+    JSON encoding on its own core. The due times of realtime ticks come from
+    :mod:`hilswarm.orchestrator.frame_schedule` (free, or in step with the mocap frames), the
+    counting of ticks and the agents' reports go to :mod:`hilswarm.orchestrator.run_tally`.
 
     Args:
         experiment: the loaded experiment (its ``mode`` and ``n_ticks`` are used).
@@ -207,30 +191,33 @@ class InstanceManager:
         self.answer_timeout_s = answer_timeout_s
         self.stop_timeout_s = stop_timeout_s
         self._display = display
-        if isinstance(recorder, Recorder):
-            recorder = StreamRecorder(recorder, experiment)
-        self._sink: RecordSink | None = recorder
-        # The record stream: what the bus brought, for the sink (kept and cut under _lock,
-        # written to MCAP under _hand_over_guard).
-        self._records = RecordWriter(self.names) if recorder is not None else None
-        self._record_ticks = record_ticks and recorder is not None
-        self._flush_period_s = flush_period_s
         self._describe_process = describe_process
-        self._late_in_block = 0
-        self._overload_reported = False
-        self._next_flush = 0.0
-        self._flush_from = 0.0  # realtime: a tick completing from then on carries the records
         # Shared with the bus callbacks (Zenoh threads): guarded by _lock.
         self._lock = threading.Lock()
-        # One batch of records handed over at a time (taken before _lock, never inside it).
-        self._hand_over_guard = threading.Lock()
         # realtime: one tick in flight; self-clocked: also the next one, opened in advance
         self.window = 1 if self._realtime else experiment.lockstep_window
         if self.self_clocked:
             self.window = 2
         self._step_k = 0  # self-clocked: the tick whose due time is the next step
         self._tick = TickWindow(self.n, self.window)
-        self._records_since = -1  # the tick at which the batch began gathering (-1: unknown)
+        if isinstance(recorder, Recorder):
+            recorder = StreamRecorder(recorder, experiment)
+        # The record stream: the bus callbacks keep messages in ``_records`` under _lock; the
+        # feed hands them to the sink in batches.
+        self._feed: RecordFeed | None = None
+        if recorder is not None:
+            self._feed = RecordFeed(
+                recorder,
+                self.names,
+                lock=self._lock,
+                tick_base=lambda: self._tick.base,
+                clock=clock,
+                wall_clock_ns=wall_clock_ns,
+                flush_period_s=flush_period_s,
+            )
+        self._records = self._feed.writer if self._feed is not None else None
+        self._record_ticks = record_ticks and recorder is not None
+        self._flush_period_s = flush_period_s
         self.agent_states: dict[str, str] = {}
         # Rare events for the ticking thread: liveliness, control, stop, safe, lockstep done.
         self._events: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
@@ -251,21 +238,19 @@ class InstanceManager:
         self.summary.max_late_fraction = float(
             getattr(experiment, "max_late_fraction", DEFAULT_MAX_LATE_FRACTION)
         )
-        self._completion = np.full(max(experiment.n_ticks, 1), np.nan)
-        self._clock_origin = clock()
-        # Realtime ticks in step with the mocap frames (frame_lock): the lock's state is
-        # shared with the frame-clock callback, guarded by its own small lock.
-        mocap = getattr(experiment, "mocap", None)
-        self._frame_guard = threading.Lock()
-        self._frame_lock: FrameLock | None = None
-        if self._realtime and mocap is not None and mocap.tick_lock:
-            self._frame_lock = FrameLock(1.0 / mocap.rate_hz)
-        self._ticks = TickClock(
-            self.dt, self._frame_lock, mocap.tick_lag_s if self._frame_lock is not None else 0.0
+        self._tally = RunTally(
+            self.summary,
+            self.names,
+            experiment.n_ticks,
+            experiment.rate_hz,
+            say=display.log if display is not None else None,
         )
-        self._lock_reported: bool | None = None  # locked at the last frame_lock record
-        self._lock_report_due = 0.0
-        self._frame_clock_malformed = 0
+        self._completion = self._tally.completion
+        self._clock_origin = clock()
+        # Realtime due times, in step with the mocap frames with ``[mocap] tick_lock``.
+        self._frames = FrameSchedule(
+            self.dt, getattr(experiment, "mocap", None), realtime=self._realtime
+        )
 
     # -- bus ---------------------------------------------------------------------------------
 
@@ -311,7 +296,7 @@ class InstanceManager:
                         key, zenoh.handlers.Callback(callback, indirect=False)
                     )
                 )
-        if self._frame_lock is not None:
+        if self._frames.locking:
             entities.append(
                 session.declare_subscriber(
                     keys.mocap_clock,
@@ -345,8 +330,8 @@ class InstanceManager:
     def _y_callback(self, i: int) -> Callable[[zenoh.Sample], None]:
         """The callback of agent ``i``'s y key (runs on a Zenoh thread: keep it short)."""
         clock, wall_ns, lock, tick = self._clock, self._wall_ns, self._lock, self._tick
-        records, ledger = self._records, self._record_ticks
-        record = records is not None
+        records, ledger, feed = self._records, self._record_ticks, self._feed
+        record = feed is not None
         lockstep = not self._realtime
         put, unpack_k, header = self._events.put, _K.unpack_from, _K.size
         window, arrived, answered_at, count = (
@@ -394,7 +379,7 @@ class InstanceManager:
                 # Lockstep: the oldest tick is complete, release more. Realtime, recording:
                 # the swarm is idle until its next tick, the time to hand the records over.
                 done = count[slot] >= tick.expected and (
-                    k == tick.base if lockstep else record and received >= self._flush_from
+                    k == tick.base if lockstep else record and received >= feed.flush_from
                 )
             if done:
                 put((_COMPLETE, k))
@@ -403,52 +388,18 @@ class InstanceManager:
 
     def _on_frame_clock(self, sample: zenoh.Sample) -> None:
         """A mocap frame's clock (100-240 Hz, a Zenoh thread): one update of the frame lock."""
-        arrival = self._clock()
-        try:
-            number, frame_time = frame_clock.decode(sample.payload.to_bytes())
-        except bus.BusMessageError as exc:
-            self._frame_clock_malformed += 1  # only the mocap principal may put it
-            if self._frame_clock_malformed == 1:
-                logger.warning("mocap frame clock dropped: %s", exc)
-            return
-        lock = self._frame_lock
-        if lock is not None:
-            with self._frame_guard:
-                lock.on_frame(number, frame_time, arrival)
+        self._frames.on_frame(sample.payload.to_bytes(), self._clock())
 
     def _due(self, k: int) -> float:
         """Realtime: the due time of tick ``k`` [s, manager clock], locked or free."""
-        with self._frame_guard:
-            return self._ticks.due(k, self._clock())
+        return self._frames.due(k, self._clock())
 
-    def _note_frame_lock(self, k: int, now: float) -> None:
+    def _note_frame_lock(self, k: int, now: float, *, final: bool = False) -> None:
         """Record the frame lock's state (``frame_lock`` on ``/orchestrator/status``) when it
-        changes, and every :data:`FRAME_LOCK_REPORT_S` while it holds."""
-        lock, ticks = self._frame_lock, self._ticks
-        if lock is None:
-            return
-        locked = ticks.locked
-        if locked is self._lock_reported and now < self._lock_report_due:
-            return
-        with self._frame_guard:
-            frames, mean, top = lock.take_stats()
-            offset = lock.offset_s
-        if locked:
-            detail = (
-                f"locked: ticks {ticks.lag_s * 1e3:.3g} ms after frames "
-                f"({offset * 1e3:.3g} ms after their frame time); frames after the estimated "
-                f"grid: mean {mean * 1e3:.3g} / max {top * 1e3:.3g} ms ({frames} frames)"
-            )
-        elif not ticks.enabled:
-            detail = "free: ticks faster than the mocap frames"
-        else:
-            detail = "free: no mocap frames"
-        detail += f"; ticks locked {ticks.ticks_locked}, free {ticks.ticks_free}"
-        if locked != self._lock_reported:
-            logger.info("tick %d: %s", k, detail)
-        self._lock_reported = locked
-        self._lock_report_due = now + FRAME_LOCK_REPORT_S
-        self._record_event(ORCHESTRATOR, "frame_lock", k=k, detail=detail)
+        changes, every so often while it holds, and at the end (``final``)."""
+        detail = self._frames.report(k, now, final=final)
+        if detail is not None:
+            self._record_event(ORCHESTRATOR, "frame_lock", k=k, detail=detail)
 
     def _on_status(self, sample: zenoh.Sample) -> None:
         """An agent's status message (rare): its state for the display and the policies."""
@@ -468,33 +419,13 @@ class InstanceManager:
                 # A board link fault: the agent's ticks wait for its link, it is not hung.
                 self._tick.last_progress = self._clock()
             self.agent_states[name] = state
-            self._note_status(name, state, message)
+            self._tally.note_status(name, state, message, stopping=self._stopping)
         if state == "stopped":
             self._events.put((_STOPPED, name))
         elif state == "safe":
             agent_k = message.get("k")
             agent_k = agent_k if isinstance(agent_k, int) else -1
             self._events.put((_SAFE, name, str(message.get("detail", "")), agent_k))
-
-    def _note_status(self, name: str, state: str, message: dict[str, Any]) -> None:
-        """Keep what the outcome needs from an agent's status (call under the lock)."""
-        summary = self.summary
-        try:
-            k = int(message.get("k", 0))
-        except (TypeError, ValueError):
-            k = 0
-        detail = str(message.get("detail", ""))
-        if state == "safe" and name not in summary.safe and not self._stopping:
-            summary.safe[name] = AgentEvent(k, detail)
-        elif state == "degraded" and message.get("kind", "transition") == "transition":
-            summary.degraded.setdefault(name, []).append(AgentEvent(k, detail))
-        kept = {
-            key: counts
-            for key in COUNTER_NAMES
-            if key in message and (counts := _counts(message[key])) is not None
-        }
-        if kept:  # the agent's totals so far: the latest status holds them all
-            summary.counters.setdefault(name, {}).update(kept)
 
     def _on_vector(self, sample: zenoh.Sample) -> None:
         """A vector on another agent key (telemetry): recorded as it came."""
@@ -567,42 +498,14 @@ class InstanceManager:
             self._status_pub.put(bus.encode_json({"state": state, "detail": detail}))
 
     def _record_event(self, agent: str, state: str, *, k: int, detail: str) -> None:
-        records = self._records
-        if records is None:
-            return
-        with self._lock:
-            records.event(self._wall_ns(), agent, state, k=k, t=k * self.dt, detail=detail)
+        if self._feed is not None:
+            self._feed.event(agent, state, k=k, t=k * self.dt, detail=detail)
 
     def _flush_records(self, now: float | None = None) -> None:
-        """Hand the records gathered so far to the sink (one write); the next batch is due one
-        flush period from ``now`` [s, manager clock; default: the clock now]."""
-        self._next_flush = (self._clock() if now is None else now) + self._flush_period_s
-        # A realtime tick completing from half a period before the next batch is due carries it
-        # (the completions jitter; one event per batch, not per tick).
-        self._flush_from = self._next_flush - 0.5 * self.dt
-        self._hand_over_records(final=False)
-
-    def _hand_over_records(self, *, final: bool) -> None:
-        """Hand the records gathered so far to the sink as one batch (``final``: the last,
-        which ends the stream)."""
-        sink, records = self._sink, self._records
-        if sink is None or records is None:
-            return
-        with self._hand_over_guard:  # batches in the order of their cuts
-            with self._lock:
-                if records.closed:
-                    return
-                kept = records.cut()
-                # the batch holds records gathered since the last one: of its tick on
-                first, tick = self._records_since, self._tick.base
-                if kept or final:
-                    self._records_since = tick
-            # logging the MCAP messages lets go of the GIL: never under the callbacks' lock
-            now = self._wall_ns()
-            batch = records.write_end(kept, now) if final else records.write(kept, now)
-            if batch is None:
-                return
-            hand_over(sink, batch, tick=tick, first_tick=first)
+        """Hand the records gathered so far to the sink (one batch); the next is due one flush
+        period from ``now`` [s, manager clock; default: the clock now]."""
+        if self._feed is not None:
+            self._feed.flush(now, dt=self.dt)
 
     def request_stop(self, reason: str) -> None:
         """Ask the run to stop (thread-safe, signal-safe): agents to safe, then stopped."""
@@ -661,7 +564,7 @@ class InstanceManager:
         """Send every tick of the experiment, then stop the agents. Returns the summary."""
         realtime = self._realtime
         clock, get, dt = self._clock, self._events.get, self.dt
-        tick = self._tick
+        tick, feed = self._tick, self._feed
         with self._lock:
             tick.recount()
         self._publish_state("running")
@@ -670,7 +573,7 @@ class InstanceManager:
         # The lead before tick 0; self-clocked agents put their warm-up outputs in it too.
         t0 = start + (start_lead(dt, self_clocked=clocked) if realtime else 0.0)
         if realtime:
-            self._ticks.start(t0)  # tick k due at t0 + k dt, or in step with the mocap frames
+            self._frames.start(t0)  # tick k due at t0 + k dt, or in step with the mocap frames
             t0 = self._due(0)
             if clocked:  # the agents wake themselves at t0 + k * dt from now on
                 with self._lock:  # open tick 0 before an agent can answer it
@@ -682,7 +585,7 @@ class InstanceManager:
                 self._clocked_step()
             elif realtime:
                 self._release(0, t0)
-                self._ticks.released()
+                self._frames.released()
                 self._note_frame_lock(0, clock())
             else:
                 self._release_window()
@@ -711,7 +614,7 @@ class InstanceManager:
             if now >= next_display:
                 self._show(tick.base - 1, start, now)
                 next_display = now + 0.5
-            if now >= self._next_flush:  # no tick completed in time to carry it
+            if feed is not None and now >= feed.next_flush:  # no tick completed to carry it
                 self._flush_records(now)
             try:
                 item = get(timeout=max(0.0, wait_until - clock()))
@@ -730,13 +633,11 @@ class InstanceManager:
             else:
                 self._lockstep_step()
         if realtime:  # the lock's totals at the end
-            self._lock_report_due = -math.inf
-            self._note_frame_lock(tick.k, clock())
+            self._note_frame_lock(tick.k, clock(), final=True)
         summary = self.summary
         summary.wall_s = clock() - start
         summary.stop_reason = self._stop_reason
-        accounted = self._completion[: summary.ticks_run]
-        summary.completion_s = accounted[np.isfinite(accounted)].tolist()
+        summary.completion_s = self._tally.completion_s()
         self._show(tick.base - 1, start, clock())
         self._stop_agents(max(tick.base - 1, 0))
         return summary
@@ -755,7 +656,7 @@ class InstanceManager:
                 tick.release(k, scheduled, self._clock())
         if k < n_ticks:
             self._send_tick(k, missing)
-            self._ticks.released()
+            self._frames.released()
             self._note_frame_lock(k, self._clock())
         self._count(account, late)
         if k >= n_ticks:
@@ -763,8 +664,7 @@ class InstanceManager:
 
     def _reanchor_free(self, now: float) -> None:
         """Ticked resume: tick k+1 is due one period from ``now`` (or at the frame then)."""
-        with self._frame_guard:
-            self._ticks.reanchor(now, self._tick.k)
+        self._frames.reanchor(now, self._tick.k)
 
     def _clocked_stepping(self) -> bool:
         """Self-clocked: does the ticking thread step? Not while paused, except that a pause
@@ -785,8 +685,8 @@ class InstanceManager:
         _, last, anchor = self._schedule
         last = min(n_ticks - 1, last)
         due_j = anchor + j * dt
-        if self._frame_lock is not None:
-            self._ticks.released()
+        if self._frames.locking:
+            self._frames.released()
             self._note_frame_lock(j, self._clock())
             if j + 1 <= last:
                 moved = self._due(j + 1) - (j + 1) * dt  # the anchor the lock asks for
@@ -830,8 +730,7 @@ class InstanceManager:
         with self._lock:
             started = min(self._step_k - 1, tick.released)
             tick.released = started  # a tick opened in advance is opened again, re-timed
-        with self._frame_guard:
-            self._ticks.reanchor(now, started)
+        self._frames.reanchor(now, started)
         t0 = self._due(started + 1) - (started + 1) * self.dt
         if started + 1 < self.experiment.n_ticks:
             # Open the resumed tick now: an agent may answer it before this thread's step at
@@ -846,32 +745,7 @@ class InstanceManager:
     def _count(self, account: TickAccount, late: list[int]) -> None:
         """Account a closed tick and count it (late or on time)."""
         self._account(account)
-        for j in late:
-            self.summary.late[self.names[j]] += 1
-        if late:
-            self.summary.note_late_tick(account.k)
-            if account.k < self._completion.size:  # complete but late: the summary's
-                self._completion[account.k] = math.nan  # percentiles count it as infinite
-        else:
-            self.summary.ticks += 1
-        self._watch_overload(account.k, bool(late))
-
-    def _watch_overload(self, k: int, late: bool) -> None:
-        """Say once when many recent ticks were late: the machine may not keep up."""
-        self._late_in_block += late
-        if (k + 1) % OVERLOAD_BLOCK_TICKS or self._overload_reported:
-            return
-        late_count, self._late_in_block = self._late_in_block, 0
-        if late_count > OVERLOAD_LATE_FRACTION * OVERLOAD_BLOCK_TICKS:
-            self._overload_reported = True
-            message = (
-                f"{late_count} of ticks {k + 1 - OVERLOAD_BLOCK_TICKS}..{k} were late: the agents "
-                f"do not keep up with {self.experiment.rate_hz:g} Hz here (too many agents for "
-                "the CPU cores, or slow links); see docs/running.md, Performance"
-            )
-            logger.warning("%s", message)
-            if self._display is not None:
-                self._display.log(message)
+        self._tally.count(account.k, late)
 
     def _lockstep_step(self) -> None:
         """Close every completed tick, release more, and find agents that stopped answering."""
@@ -943,8 +817,7 @@ class InstanceManager:
         """Record the timing account of a tick (times on the manager clock [s])."""
         k, scheduled = account.k, account.scheduled
         completion = account.done - scheduled
-        if k < self._completion.size:
-            self._completion[k] = completion
+        self._tally.completed(k, completion)
         if account.answers is None:
             return
         records = self._records
@@ -1170,7 +1043,8 @@ class InstanceManager:
                 self._session.close()
                 self._session = None
         self._flush_records()
-        self._hand_over_records(final=True)
+        if self._feed is not None:
+            self._feed.hand_over(final=True)
 
     @property
     def estop_tick(self) -> int | None:

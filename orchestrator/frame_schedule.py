@@ -1,0 +1,124 @@
+"""The instance manager's realtime due times, free or in step with the mocap frames.
+
+:class:`FrameSchedule` is what the manager holds of :mod:`hilswarm.orchestrator.frame_lock`:
+the frame phase (:class:`~hilswarm.orchestrator.frame_lock.FrameLock`), fed by the mocap
+process's frame-clock messages on a Zenoh thread, and the ticks' due times
+(:class:`~hilswarm.orchestrator.frame_lock.TickClock`), asked by the ticking thread, behind
+one small lock of their own; and the ``frame_lock`` record on ``/orchestrator/status`` that
+says how the lock holds (docs/mocap.md, "Ticks in step with the frames"). No clock is read
+here: every time is passed in [s, the manager's clock].
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from typing import Any
+
+from hilswarm.agents import bus
+from hilswarm.agents.mocap import frame_clock
+from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
+
+logger = logging.getLogger(__name__)
+
+#: Period of the ``frame_lock`` record while the lock holds [s].
+FRAME_LOCK_REPORT_S = 10.0
+
+
+class FrameSchedule:
+    """Due times of realtime ticks, locked to the frames when the experiment asks for it.
+
+    Args:
+        dt: tick period [s].
+        mocap: the experiment's ``[mocap]`` section (``None``: none); its ``tick_lock``,
+            ``rate_hz`` and ``tick_lag_s`` are used.
+        realtime: the run is realtime (lockstep ticks never lock).
+    """
+
+    def __init__(self, dt: float, mocap: Any | None, *, realtime: bool) -> None:
+        self._guard = threading.Lock()  # the frame-clock callback against the ticking thread
+        self.lock: FrameLock | None = None
+        if realtime and mocap is not None and mocap.tick_lock:
+            self.lock = FrameLock(1.0 / mocap.rate_hz)
+        lag_s = mocap.tick_lag_s if self.lock is not None else 0.0
+        self.ticks = TickClock(dt, self.lock, lag_s)
+        #: Frame-clock messages dropped as malformed (only the mocap principal may put them).
+        self.malformed = 0
+        self._reported: bool | None = None  # locked at the last record
+        self._report_due = 0.0
+
+    @property
+    def locking(self) -> bool:
+        """Ticks follow the frames while frames come (``[mocap] tick_lock`` in a realtime run)."""
+        return self.lock is not None
+
+    def on_frame(self, payload: bytes, arrival: float) -> None:
+        """A frame-clock message (a Zenoh thread, 100-240 Hz): one O(1) update of the phase.
+
+        Args:
+            payload: the message (:mod:`hilswarm.agents.mocap.frame_clock`); a malformed one
+                is counted and dropped.
+            arrival: when it came [s, manager clock].
+        """
+        try:
+            number, frame_time = frame_clock.decode(payload)
+        except bus.BusMessageError as exc:
+            self.malformed += 1
+            if self.malformed == 1:
+                logger.warning("mocap frame clock dropped: %s", exc)
+            return
+        lock = self.lock
+        if lock is not None:
+            with self._guard:
+                lock.on_frame(number, frame_time, arrival)
+
+    def start(self, t0: float) -> None:
+        """Tick 0's grid point is ``t0`` [s, manager clock]."""
+        with self._guard:
+            self.ticks.start(t0)
+
+    def due(self, k: int, now: float) -> float:
+        """The due time of tick ``k`` [s, manager clock], locked or free, as known at ``now``."""
+        with self._guard:
+            return self.ticks.due(k, now)
+
+    def reanchor(self, now: float, k: int) -> None:
+        """Resume: tick ``k + 1`` is due one period after ``now`` [s] (or at the frame then)."""
+        with self._guard:
+            self.ticks.reanchor(now, k)
+
+    def released(self) -> None:
+        """The tick of the last due time went out: counted as locked or free."""
+        with self._guard:
+            self.ticks.released()
+
+    def report(self, k: int, now: float, *, final: bool = False) -> str | None:
+        """The ``frame_lock`` record's text when one is due at tick ``k``: when the lock was
+        taken or lost, every :data:`FRAME_LOCK_REPORT_S` while it holds, and at the end
+        (``final``); ``None`` otherwise, and always without a frame lock."""
+        lock, ticks = self.lock, self.ticks
+        if lock is None:
+            return None
+        locked = ticks.locked
+        if not final and locked is self._reported and now < self._report_due:
+            return None
+        with self._guard:
+            frames, mean, top = lock.take_stats()
+            offset = lock.offset_s
+        if locked:
+            detail = (
+                f"locked: ticks {ticks.lag_s * 1e3:.3g} ms after frames "
+                f"({offset * 1e3:.3g} ms after their frame time); frames after the estimated "
+                f"grid: mean {mean * 1e3:.3g} / max {top * 1e3:.3g} ms ({frames} frames)"
+            )
+        elif not ticks.enabled:
+            detail = "free: ticks faster than the mocap frames"
+        else:
+            detail = "free: no mocap frames"
+        detail += f"; ticks locked {ticks.ticks_locked}, free {ticks.ticks_free}"
+        if locked != self._reported:
+            logger.info("tick %d: %s", k, detail)
+        self._reported = locked
+        self._report_due = math.inf if final else now + FRAME_LOCK_REPORT_S
+        return detail

@@ -1,0 +1,71 @@
+"""The manager's frame schedule (orchestrator/frame_schedule.py): frame-clock messages in, due
+times and the ``frame_lock`` record out, with times passed in (no clock, no process)."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+from hilswarm.agents.mocap import frame_clock
+from hilswarm.agents.mocap.config import MocapSettings
+from hilswarm.orchestrator.frame_lock import ACQUIRE_FRAMES
+from hilswarm.orchestrator.frame_schedule import FRAME_LOCK_REPORT_S, FrameSchedule
+
+P = 0.01  # 100 Hz frames [s]
+DT = 0.01  # 100 Hz ticks [s]
+
+
+def test_no_lock_without_mocap_or_in_lockstep_or_with_tick_lock_off() -> None:
+    for schedule in (
+        FrameSchedule(DT, None, realtime=True),
+        FrameSchedule(DT, MocapSettings(system="sim"), realtime=False),
+        FrameSchedule(DT, MocapSettings(system="sim", tick_lock=False), realtime=True),
+    ):
+        assert not schedule.locking
+        schedule.start(2.0)
+        assert schedule.due(3, 2.5) == pytest.approx(2.03)  # the free grid
+        assert schedule.report(3, 2.5) is None
+        assert schedule.report(3, 2.5, final=True) is None
+
+
+def test_frames_lock_the_due_times_and_the_record_says_when() -> None:
+    schedule = FrameSchedule(DT, MocapSettings(system="sim", rate_hz=100.0), realtime=True)
+    assert schedule.locking
+    lag = schedule.ticks.lag_s
+    schedule.start(1.0)
+    # No frames yet: free, and the first record says so.
+    assert schedule.due(0, 1.0) == pytest.approx(1.0)
+    schedule.released()
+    assert schedule.report(0, 1.0) == "free: no mocap frames; ticks locked 0, free 1"
+    assert schedule.report(0, 1.001) is None  # unchanged and not due again
+    # Frames at 1.0043 + n P, reaching the manager 0.5 ms later: locked after acquisition.
+    for n in range(ACQUIRE_FRAMES):
+        f = 1.0043 + n * P
+        schedule.on_frame(frame_clock.encode(n, f), f + 0.0005)
+    now = 1.0043 + (ACQUIRE_FRAMES - 1) * P + 0.0005
+    k = 11
+    due = schedule.due(k, now)
+    frame = due - lag  # a frame's arrival on the manager clock, the lag before the tick
+    assert (frame - (1.0048 + k * P)) % P == pytest.approx(0.0, abs=1e-9)
+    assert 0.0 <= frame - (1.0 + k * DT) < P  # the first frame at or after its grid point
+    schedule.released()
+    text = schedule.report(k, now)
+    assert text is not None and text.startswith("locked: ticks ")
+    assert text.endswith("ticks locked 1, free 1")
+    assert schedule.report(k, now + 1.0) is None  # holds, not due yet
+    assert schedule.report(k, now + FRAME_LOCK_REPORT_S) is not None  # every 10 s
+    final = schedule.report(k, now + FRAME_LOCK_REPORT_S + 0.1, final=True)
+    assert final is not None and final.startswith("locked: ")  # the end: always
+
+
+def test_a_malformed_frame_clock_is_counted_and_warned_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    schedule = FrameSchedule(DT, MocapSettings(system="sim"), realtime=True)
+    with caplog.at_level(logging.WARNING):
+        schedule.on_frame(b"short", 1.0)
+        schedule.on_frame(b"\x00" * 3, 1.1)
+    assert schedule.malformed == 2
+    assert sum("mocap frame clock dropped" in r.getMessage() for r in caplog.records) == 1
+    schedule.start(0.0)
+    assert schedule.due(5, 1.2) == pytest.approx(0.05)  # nothing locked on them
