@@ -11,7 +11,9 @@ machine are honest but low, ratios are what to compare):
 3. **Largest N with no late ticks**, unicast against the packed broadcast (``[gateway] mode =
    "broadcast"``, replies every ``--reply-every`` (5) ticks, round-robin), at 20 and 50 Hz: N
    Frisbee-sized robots (``SimBoard`` behind ``WireServer``) on one simulated 115200-baud
-   coordinator, the real gateway, N ``xbee://`` boards ticking together each period; a tick is
+   coordinator, the real gateway, N ``xbee://`` boards ticking together each period (the
+   simulated coordinator with its robots, and the gateway, each in a process of its own, as
+   the radios and ``hilswarm run``'s gateway are; ``--one-process``: all in this one); a tick is
    late when not every reply is in within the period (a broadcast robot's reply on its reply
    ticks is its own fresh sample: the radio round trip). Each N is reported as a fraction of
    two computed bounds: the throughput bound (air and host UART per tick,
@@ -19,19 +21,23 @@ machine are honest but low, ratios are what to compare):
    frames through the host UART, the air, the robot's UART and back). Targets: unicast >= 80 %
    of its bound; broadcast >= 16 robots at 50 Hz.
 
-    python benchmarks/xbee_gateway.py [--short] [--ticks K] [--reply-every M]
+    python benchmarks/xbee_gateway.py [--short] [--ticks K] [--reply-every M] [--one-process]
+    python benchmarks/xbee_gateway.py --rates 50 --only broadcast --answers at_once
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import statistics
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack, contextmanager, suppress
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 
 from digi.xbee.models.address import XBee64BitAddress
 from digi.xbee.models.mode import OperatingMode
@@ -214,14 +220,16 @@ class TimedSimBoard(SimBoard):
         return super().exchange(writes, reads)
 
 
-def delivery_s(sims: list[TimedSimBoard], starts: list[float]) -> list[float]:
+def delivery_s(arrivals: list[list[tuple[float, int]]], starts: list[float]) -> list[float]:
     """Per tick: when the last robot got the tick's outputs, after the tick started [s]
-    (infinity: some robot never did). Tick k writes PWM 5 = k % 250."""
+    (infinity: some robot never did); ``arrivals``: per robot, its ``TimedSimBoard``'s
+    (times on CLOCK_MONOTONIC, one clock for every process here). Tick k writes PWM 5 =
+    k % 250."""
     out = []
     for k, start in enumerate(starts):
         worst = 0.0
-        for sim in sims:
-            got = [t for t, v in sim.arrivals if v == k % 250 and t >= start]
+        for robot in arrivals:
+            got = [t for t, v in robot if v == k % 250 and t >= start]
             worst = max(worst, (got[0] - start) if got else float("inf"))
         out.append(worst)
     return out
@@ -253,6 +261,87 @@ class TickRun:
         )
 
 
+def _serve_air(conn: Connection, n: int, rate_hz: float) -> None:
+    """A process of its own: the simulated coordinator and ``n`` robots (``TimedSimBoard``
+    behind ``WireServerUart``); sends the pty's URL, waits for the word to stop, sends back
+    each robot's ``arrivals``."""
+    sims = [TimedSimBoard(dt=1 / rate_hz) for _ in range(n)]
+    remotes = [SimRemote(ADDRESS + 1 + i, WireServerUart(sim)) for i, sim in enumerate(sims)]
+    with SimCoordinator(remotes, seed=n) as coordinator:
+        conn.send(coordinator.url)
+        conn.recv()
+    conn.send([sim.arrivals for sim in sims])
+
+
+def _serve_gateway(
+    conn: Connection,
+    endpoint: str,
+    port_url: str,
+    addresses: dict[str, int],
+    options: dict[str, object],
+) -> None:
+    """A process of its own: the real gateway on ``port_url``, on the bus at ``endpoint``;
+    sends ``"ready"``, then runs until told to stop."""
+    session = bus.open_session(bus.client_config([endpoint]))
+    try:
+        with Gateway(
+            GatewayConfig(mode=options["mode"], answer=options["answer"]),  # type: ignore[arg-type]
+            bus.BusKeys(EXP),
+            addresses,
+            session,
+            port_url=port_url,
+            reply_every=options["reply_every"],  # type: ignore[arg-type]
+            rate_hz=options["rate_hz"],  # type: ignore[arg-type]
+        ):
+            conn.send("ready")
+            conn.recv()
+    finally:
+        session.close()
+
+
+class _Helper:
+    """A spawned process running ``target(conn, *args)`` (:func:`_in_process`)."""
+
+    def __init__(self, target: object, args: tuple[object, ...], what: str) -> None:
+        self.conn, theirs = multiprocessing.Pipe()
+        self.what = what
+        self.process = multiprocessing.get_context("spawn").Process(
+            target=target, args=(theirs, *args), daemon=True
+        )
+        self.process.start()
+
+    def first(self) -> object:
+        """The first thing it sends (bounded wait)."""
+        if not self.conn.poll(60.0):
+            raise RuntimeError(f"the {self.what} process did not start within 60 s")
+        return self.conn.recv()
+
+    def stop(self) -> object:
+        """Tell it to stop; what it sends back then (``None``: nothing); wait for its end."""
+        reply = None
+        if self.process.is_alive():
+            with suppress(BrokenPipeError, OSError):
+                self.conn.send("stop")
+            with suppress(EOFError, OSError):
+                if self.conn.poll(30.0):
+                    reply = self.conn.recv()
+        self.process.join(10.0)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join(5.0)
+        return reply
+
+
+@contextmanager
+def _in_process(target: object, args: tuple[object, ...], *, what: str) -> Iterator[_Helper]:
+    """Start ``target(conn, *args)`` in a fresh (spawned) process; stopped at the end."""
+    helper = _Helper(target, args, what)
+    try:
+        yield helper
+    finally:
+        helper.stop()
+
+
 def ticks_on_time(
     endpoint: str,
     n: int,
@@ -262,36 +351,61 @@ def ticks_on_time(
     mode: str = "unicast",
     reply_every: int = 1,
     answer: str = "wait",
+    processes: bool = True,
 ) -> TickRun:
     """Run ``n`` robots at ``rate_hz`` for ``ticks`` (at most 249) after one untimed tick.
 
     Tick k is done when every exchange returned and every robot drives tick k's outputs (with
     ``answer = "at_once"`` the answers do not wait for the air: the delivery is what says
-    whether the radio keeps up)."""
+    whether the radio keeps up). ``processes``: the simulated coordinator with its robots, and
+    the gateway, each in a process of its own, as in a run (the radios are not on the host's
+    CPU; the gateway is a process of ``hilswarm run``); else all in this one."""
     names = [f"r{i}" for i in range(n)]
     addresses = {name: ADDRESS + 1 + i for i, name in enumerate(names)}
-    sims = [TimedSimBoard(dt=1 / rate_hz) for _ in names]
-    remotes = [SimRemote(addresses[nm], WireServerUart(sims[i])) for i, nm in enumerate(names)]
-    session = bus.open_session(bus.client_config([endpoint]))
+    options: dict[str, object] = {
+        "mode": mode,
+        "answer": answer,
+        "reply_every": dict.fromkeys(names, reply_every),
+        "rate_hz": rate_hz,
+    }
+    sims: list[TimedSimBoard] = []
     boards = []
     failed = stale = 0
     exchange_s: list[float] = []
     failed_ticks: list[bool] = []
     starts: list[float] = []
     dt = 1.0 / rate_hz
-    with (
-        SimCoordinator(remotes, seed=n) as coordinator,
-        Gateway(
-            GatewayConfig(mode=mode, answer=answer),
-            bus.BusKeys(EXP),
-            addresses,
-            session,
-            port_url=coordinator.url,
-            reply_every=dict.fromkeys(names, reply_every),
-            rate_hz=rate_hz,
-        ),
-        ThreadPoolExecutor(max_workers=n) as pool,
-    ):
+    arrivals: list[list[tuple[float, int]]] = []
+    with ExitStack() as stack:
+        if processes:
+            air = stack.enter_context(_in_process(_serve_air, (n, rate_hz), what="air"))
+            port_url = air.first()
+            gateway = stack.enter_context(
+                _in_process(
+                    _serve_gateway, (endpoint, port_url, addresses, options), what="gateway"
+                )
+            )
+            gateway.first()
+        else:
+            sims = [TimedSimBoard(dt=dt) for _ in names]
+            remotes = [
+                SimRemote(addresses[nm], WireServerUart(sims[i])) for i, nm in enumerate(names)
+            ]
+            coordinator = stack.enter_context(SimCoordinator(remotes, seed=n))
+            gateway_session = bus.open_session(bus.client_config([endpoint]))
+            stack.callback(gateway_session.close)
+            stack.enter_context(
+                Gateway(
+                    GatewayConfig(mode=mode, answer=answer),
+                    bus.BusKeys(EXP),
+                    addresses,
+                    gateway_session,
+                    port_url=coordinator.url,
+                    reply_every=dict.fromkeys(names, reply_every),
+                    rate_hz=rate_hz,
+                )
+            )
+        pool = stack.enter_context(ThreadPoolExecutor(max_workers=n))
         try:
             for name in names:
                 board = board_from_url(
@@ -337,8 +451,14 @@ def ticks_on_time(
         finally:
             for board in boards:
                 board.close()
-            session.close()
-    delivered = delivery_s(sims, starts)
+        if processes:
+            gateway.stop()  # before its port goes
+            arrivals = air.stop()  # type: ignore[assignment]
+            if arrivals is None:
+                raise RuntimeError("the air process did not send its robots' arrivals")
+        else:
+            arrivals = [sim.arrivals for sim in sims]
+    delivered = delivery_s(arrivals, starts)
     tick_s = [max(a, b) for a, b in zip(exchange_s, delivered, strict=True)]
     return TickRun(tick_s, failed_ticks, failed, stale, dt)
 
@@ -362,13 +482,13 @@ def latency_bound(rate_hz: float) -> tuple[int, float]:
     return max(0, int((1.0 / rate_hz - fixed) // per_robot)), fixed
 
 
-def bench_capacity(endpoint: str, rate_hz: float, ticks: int) -> None:
+def bench_capacity(endpoint: str, rate_hz: float, ticks: int, *, processes: bool = True) -> None:
     """Largest N with no late ticks vs the computed bound."""
     n_bound, binding = bound(rate_hz)
     n_latency, fixed = latency_bound(rate_hz)
     best = best_1pc = 0
     for n in range(1, n_bound + 2):
-        run = ticks_on_time(endpoint, n, rate_hz, ticks)
+        run = ticks_on_time(endpoint, n, rate_hz, ticks, processes=processes)
         late, failed, durations = run.late(), run.failed, sorted(run.tick_s)
         print(
             f"  unicast {rate_hz:g} Hz, N={n}: {late}/{ticks} late ticks, {failed} failed; "
@@ -400,6 +520,7 @@ def bench_broadcast(
     step: int,
     answer: str = "wait",
     max_n: int = 255,
+    processes: bool = True,
 ) -> None:
     """Largest N (at most ``max_n``) with no late ticks by packed broadcast vs its bounds."""
     n_bound, binding = bcast_bound(rate_hz, reply_every)
@@ -416,7 +537,14 @@ def bench_broadcast(
     n = 1
     while n <= min(n_bound + 1, max_n):
         run = ticks_on_time(
-            endpoint, n, rate_hz, ticks, mode="broadcast", reply_every=reply_every, answer=answer
+            endpoint,
+            n,
+            rate_hz,
+            ticks,
+            mode="broadcast",
+            reply_every=reply_every,
+            answer=answer,
+            processes=processes,
         )
         late, failed, stale, durations = run.late(), run.failed, run.stale, sorted(run.tick_s)
         print(
@@ -460,9 +588,23 @@ def main() -> None:
     parser.add_argument(
         "--only", choices=("unicast", "broadcast"), default=None, help="one mode's capacity"
     )
+    parser.add_argument(
+        "--one-process",
+        action="store_true",
+        help="the simulated air and the gateway in this process (the layout before: their "
+        "threads share one interpreter with the boards'); default: each in a process of its own",
+    )
+    parser.add_argument(
+        "--answers",
+        choices=("wait", "at_once"),
+        nargs="+",
+        default=None,
+        help="broadcast: the gateway's answer modes to measure (default: both; --short: wait)",
+    )
     args = parser.parse_args()
+    processes = not args.one_process
     ticks = min(args.ticks or (20 if args.short else 200), 249)
-    print(load())
+    print(f"{load()}; air and gateway: {'processes of their own' if processes else 'this process'}")
     bench_codec(2000 if args.short else 20000)
     router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
     endpoint = bus.bound_endpoints(router)[0]  # the free port the router bound
@@ -470,10 +612,11 @@ def main() -> None:
         bench_bus_hop(endpoint, 100 if args.short else 1000)
         for rate in args.rates or ((20.0,) if args.short else (20.0, 50.0)):
             if args.only != "broadcast":
-                bench_capacity(endpoint, rate, ticks)
+                bench_capacity(endpoint, rate, ticks, processes=processes)
             if args.only != "unicast":
                 step = 8 if args.short else (4 if rate < 30 else 2)
-                for answer in ("wait",) if args.short else ("wait", "at_once"):
+                answers = args.answers or (("wait",) if args.short else ("wait", "at_once"))
+                for answer in answers:
                     bench_broadcast(
                         endpoint,
                         rate,
@@ -482,6 +625,7 @@ def main() -> None:
                         step=step,
                         answer=answer,
                         max_n=16 if args.short else 255,
+                        processes=processes,
                     )
     finally:
         router.close()
