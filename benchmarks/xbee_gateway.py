@@ -314,7 +314,14 @@ class _Helper:
         """The first thing it sends (bounded wait)."""
         if not self.conn.poll(60.0):
             raise RuntimeError(f"the {self.what} process did not start within 60 s")
-        return self.conn.recv()
+        try:
+            return self.conn.recv()
+        except EOFError:
+            self.process.join(5.0)
+            raise RuntimeError(
+                f"the {self.what} process ended before it started (exit code "
+                f"{self.process.exitcode}; its error is above)"
+            ) from None
 
     def stop(self) -> object:
         """Tell it to stop; what it sends back then (``None``: nothing); wait for its end."""
