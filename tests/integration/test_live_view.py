@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import websockets
 from swarm_harness import REPO, RunProcess, run_env, wait_for
 
@@ -76,7 +77,10 @@ def test_a_client_sees_channels_and_messages_of_a_running_experiment(
     )
     match = _URL.search(run.stdout_path.read_bytes())
     assert match, run.output()
-    channels, received = asyncio.run(watch(match.group(1).decode(), deadline_s=60))
+    try:
+        channels, received = asyncio.run(watch(match.group(1).decode(), deadline_s=60))
+    except websockets.ConnectionClosed as exc:  # say what the run did meanwhile
+        pytest.fail(f"the live view closed the connection ({exc}); the run:\n{run.output()}")
     assert {"/experiment", "/leader/y", "/leader/u", "/orchestrator/ticks"} <= set(channels)
     y_schema = json.loads(channels["/leader/y"]["schema"])
     assert y_schema["properties"]["psi"]["description"] == "values[2] [rad]"
