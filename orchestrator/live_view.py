@@ -12,8 +12,10 @@ Cost. The server is foxglove-sdk's (Rust, its own threads). A message is handed 
 while a client is subscribed to its topic (subscriptions are tracked with the server's
 listener callbacks), so with no client connected the recorder pays one set lookup per message.
 Each client has a bounded queue (:data:`DEFAULT_BACKLOG` messages); when a slow client lets
-it fill, the server drops that client's oldest messages. Nothing waits for a client: not the
-recorder, and certainly not the bus or the ticks, which run in other processes.
+it fill, the server drops that client's oldest messages (its control messages, such as the
+channels' advertisements, have a queue of the same size, and a client that lets that one fill
+is disconnected). Nothing waits for a client: not the recorder, and certainly not the bus or
+the ticks, which run in other processes.
 """
 
 from __future__ import annotations
