@@ -261,42 +261,65 @@ class TickRun:
         )
 
 
-def _serve_air(conn: Connection, n: int, rate_hz: float) -> None:
-    """A process of its own: the simulated coordinator and ``n`` robots (``TimedSimBoard``
-    behind ``WireServerUart``); sends the pty's URL, waits for the word to stop, sends back
-    each robot's ``arrivals``."""
+@dataclass(frozen=True)
+class _GatewayRun:
+    """How the gateway runs: ``[gateway] mode`` and ``answer``, every robot's ``reply_every``,
+    the tick rate [Hz]."""
+
+    mode: str
+    answer: str
+    reply_every: int
+    rate_hz: float
+
+
+@contextmanager
+def _air(n: int, rate_hz: float) -> Iterator[tuple[str, list[TimedSimBoard]]]:
+    """The simulated coordinator and ``n`` robots (``TimedSimBoard`` behind
+    ``WireServerUart``, robot ``i`` at ``ADDRESS + 1 + i``): its pty's URL and the robots."""
     sims = [TimedSimBoard(dt=1 / rate_hz) for _ in range(n)]
     remotes = [SimRemote(ADDRESS + 1 + i, WireServerUart(sim)) for i, sim in enumerate(sims)]
     with SimCoordinator(remotes, seed=n) as coordinator:
-        conn.send(coordinator.url)
+        yield coordinator.url, sims
+
+
+@contextmanager
+def _gateway(
+    endpoint: str, port_url: str, addresses: dict[str, int], run: _GatewayRun
+) -> Iterator[None]:
+    """The real gateway on ``port_url``, on the bus at ``endpoint``, with a session of its own."""
+    session = bus.open_session(bus.client_config([endpoint]))
+    try:
+        with Gateway(
+            GatewayConfig(mode=run.mode, answer=run.answer),
+            bus.BusKeys(EXP),
+            addresses,
+            session,
+            port_url=port_url,
+            reply_every=dict.fromkeys(addresses, run.reply_every),
+            rate_hz=run.rate_hz,
+        ):
+            yield
+    finally:
+        session.close()
+
+
+def _serve_air(conn: Connection, n: int, rate_hz: float) -> None:
+    """A process of its own: :func:`_air`; sends the pty's URL, waits for the word to stop,
+    sends back each robot's ``arrivals``."""
+    with _air(n, rate_hz) as (url, sims):
+        conn.send(url)
         conn.recv()
     conn.send([sim.arrivals for sim in sims])
 
 
 def _serve_gateway(
-    conn: Connection,
-    endpoint: str,
-    port_url: str,
-    addresses: dict[str, int],
-    options: dict[str, object],
+    conn: Connection, endpoint: str, port_url: str, addresses: dict[str, int], run: _GatewayRun
 ) -> None:
-    """A process of its own: the real gateway on ``port_url``, on the bus at ``endpoint``;
-    sends ``"ready"``, then runs until told to stop."""
-    session = bus.open_session(bus.client_config([endpoint]))
-    try:
-        with Gateway(
-            GatewayConfig(mode=options["mode"], answer=options["answer"]),  # type: ignore[arg-type]
-            bus.BusKeys(EXP),
-            addresses,
-            session,
-            port_url=port_url,
-            reply_every=options["reply_every"],  # type: ignore[arg-type]
-            rate_hz=options["rate_hz"],  # type: ignore[arg-type]
-        ):
-            conn.send("ready")
-            conn.recv()
-    finally:
-        session.close()
+    """A process of its own: :func:`_gateway`; sends ``"ready"``, then runs until told to
+    stop."""
+    with _gateway(endpoint, port_url, addresses, run):
+        conn.send("ready")
+        conn.recv()
 
 
 class _Helper:
@@ -369,12 +392,7 @@ def ticks_on_time(
     CPU; the gateway is a process of ``hilswarm run``); else all in this one."""
     names = [f"r{i}" for i in range(n)]
     addresses = {name: ADDRESS + 1 + i for i, name in enumerate(names)}
-    options: dict[str, object] = {
-        "mode": mode,
-        "answer": answer,
-        "reply_every": dict.fromkeys(names, reply_every),
-        "rate_hz": rate_hz,
-    }
+    run = _GatewayRun(mode, answer, reply_every, rate_hz)
     sims: list[TimedSimBoard] = []
     boards = []
     failed = stale = 0
@@ -388,30 +406,12 @@ def ticks_on_time(
             air = stack.enter_context(_in_process(_serve_air, (n, rate_hz), what="air"))
             port_url = air.first()
             gateway = stack.enter_context(
-                _in_process(
-                    _serve_gateway, (endpoint, port_url, addresses, options), what="gateway"
-                )
+                _in_process(_serve_gateway, (endpoint, port_url, addresses, run), what="gateway")
             )
             gateway.first()
         else:
-            sims = [TimedSimBoard(dt=dt) for _ in names]
-            remotes = [
-                SimRemote(addresses[nm], WireServerUart(sims[i])) for i, nm in enumerate(names)
-            ]
-            coordinator = stack.enter_context(SimCoordinator(remotes, seed=n))
-            gateway_session = bus.open_session(bus.client_config([endpoint]))
-            stack.callback(gateway_session.close)
-            stack.enter_context(
-                Gateway(
-                    GatewayConfig(mode=mode, answer=answer),
-                    bus.BusKeys(EXP),
-                    addresses,
-                    gateway_session,
-                    port_url=coordinator.url,
-                    reply_every=dict.fromkeys(names, reply_every),
-                    rate_hz=rate_hz,
-                )
-            )
+            port_url, sims = stack.enter_context(_air(n, rate_hz))
+            stack.enter_context(_gateway(endpoint, port_url, addresses, run))
         pool = stack.enter_context(ThreadPoolExecutor(max_workers=n))
         try:
             for name in names:
