@@ -233,7 +233,6 @@ class RecordWriter:
         # frequent message, logged inline)
         self._kept: list[_Kept] = []
         self._emit_bound = self._emit
-        self._emit_late_bound = self._emit_late
         self._defines = False
         self._seq = 0
         self.closed = False
@@ -290,7 +289,8 @@ class RecordWriter:
     def late(self, agent: int, k: int, log_time_ns: int, answer_s: float) -> None:
         """An answer (``y_k`` of ``agent``) that came after tick ``k`` closed without it,
         ``answer_s`` [s] after the tick's send."""
-        self._kept.append((self._emit_late_bound, (agent, k, log_time_ns, answer_s)))
+        data = LATE_LAYOUT.pack(k, answer_s)
+        self._kept.append((self._emit_bound, (LATE, agent, "", log_time_ns, data)))
 
     def status(self, agent: int, log_time_ns: int, payload: bytes) -> None:
         """An agent's status message (its JSON as received)."""
@@ -343,9 +343,6 @@ class RecordWriter:
         return kept
 
     # -- writing (the MCAP writer) -----------------------------------------------------------
-
-    def _emit_late(self, agent: int, k: int, log_time_ns: int, answer_s: float) -> None:
-        self._log_of(LATE, agent)(LATE_LAYOUT.pack(k, answer_s), log_time_ns)
 
     def _emit(self, kind: str, agent: int, leaf: str, log_time_ns: int, data: bytes) -> None:
         self._log_of(kind, agent, leaf)(data, log_time_ns)
