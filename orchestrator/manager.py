@@ -245,7 +245,6 @@ class InstanceManager:
             experiment.rate_hz,
             say=display.log if display is not None else None,
         )
-        self._completion = self._tally.completion
         self._clock_origin = clock()
         # Realtime due times, in step with the mocap frames with ``[mocap] tick_lock``.
         self._frames = FrameSchedule(

@@ -68,13 +68,13 @@ def test_an_answer_after_the_next_due_time_is_late_even_if_the_step_comes_later(
     assert m.summary.ticks == 0
     # complete and late: in the summary's percentiles once, as infinite (the recorded
     # account keeps its completion, DT + 2 ms)
-    assert np.isnan(m._completion[0])
+    assert np.isnan(m._tally.completion[0])
     answer(m, 1, 0, DT + 0.01)
     answer(m, 1, 1, DT + 0.02)
     clock.now = 2 * DT + 0.001
     m._clocked_step()
     assert m.summary.late == {"a": 0, "b": 1} and m.summary.ticks == 1  # tick 1 on time
-    assert np.isclose(m._completion[1], 0.02)
+    assert np.isclose(m._tally.completion[1], 0.02)
 
 
 def test_an_answer_after_its_tick_closed_is_timed_once_from_the_send() -> None:
