@@ -38,12 +38,13 @@ Threads (the agent is a thin adapter between the bus and its tick engine):
   stalled board; the vehicle-level safe mode follows on the worker.
 
 The vehicle's telemetry channels (``vehicle.telemetry``) go out in batches on
-``agent/<name>/telemetry`` (:func:`~hilswarm.agents.bus.encode_telemetry_batch`): the rows
-appended since the previous batch, every :data:`~hilswarm.agents.bus.TELEMETRY_PERIOD_S` of
-wall time, and a last batch when the agent goes safe or shuts down. A killed agent loses at
-most one period of telemetry.
+``agent/<name>/telemetry`` (:class:`~hilswarm.agents.telemetry_feed.TelemetryFeed`): the rows
+appended since the previous batch, every :data:`~hilswarm.agents.bus.TELEMETRY_PERIOD_S`, and a
+last batch when the agent goes safe or shuts down. A killed agent loses at most one period of
+telemetry. A board link fault is ridden out with :mod:`hilswarm.agents.link_recovery`.
 
-Status messages (JSON on ``agent/<name>/status``, recorded on ``/<agent>/status``) carry
+Status messages (JSON on ``agent/<name>/status``, recorded on ``/<agent>/status``; the
+counters in :class:`~hilswarm.agents.agent_counters.AgentCounters`) carry
 ``agent``, ``state``, ``k``, ``t``, ``detail``, ``kind`` and, once any is non-zero, the input
 counters: ``malformed`` (messages that could not be decoded, by key: ``tick``, ``y``,
 ``control``, ``set``, ``mocap``: body poses of a mocap pose source), ``dropped`` (well-formed
@@ -57,7 +58,8 @@ keeps the manager's schedule itself, see :class:`~hilswarm.agents.bus.ScheduleMe
 ``inputs_missing`` ({neighbour: [tick, ...]}): the ticks since its previous status that used
 no data for that neighbour (its ``y_{k-1}`` was not in at the tick's due time) although the
 manager had not reported it lost. A status of kind ``inputs`` is published when these
-counters change or such ticks are pending (at most once per :data:`COUNTERS_PERIOD_S`), and
+counters change or such ticks are pending (at most once per
+:data:`~hilswarm.agents.agent_counters.COUNTERS_PERIOD_S`; :mod:`.agent_counters`), and
 every status (the last one of the run included) carries the ticks noted since the previous
 one.
 """
@@ -87,16 +89,19 @@ from hilswarm.agents.agent_config import (  # also this module's interface
     AgentHardware,
     build_hardware,
 )
+from hilswarm.agents.agent_counters import AgentCounters
 from hilswarm.agents.credentials import Credentials
-from hilswarm.agents.errors import (
-    BoardConnectionError,
-    BoardError,
-    BoardTimeoutError,
-    HilswarmError,
-)
+from hilswarm.agents.errors import BoardError, HilswarmError
 from hilswarm.agents.lifecycle import AgentLifecycle
+from hilswarm.agents.link_recovery import (
+    LINK_FAULTS,
+    QuitRequestedError,
+    link_retries,
+    link_stages,
+    reconnect_within,
+)
 from hilswarm.agents.rehearsal import rehearse
-from hilswarm.agents.telemetry import TelemetryBatcher
+from hilswarm.agents.telemetry_feed import DUPLICATE_CHANNELS, TelemetryFeed
 from hilswarm.agents.tick_engine import (  # noqa: F401 - re-exported: the engine's constants
     MAX_NEIGHBOUR_HISTORY,
     NEIGHBOUR_HISTORY,
@@ -123,21 +128,10 @@ __all__ = [
 
 #: How long an agent waits for the router, its publishers' subscribers and the manager [s].
 DEFAULT_STARTUP_TIMEOUT_S = 20.0
-#: Vehicle telemetry channels not published: they would repeat ``/<agent>/{y,u,x_hat}``,
-#: which the tick path records already.
-DUPLICATE_CHANNELS = ("y", "u", "x_hat")
 #: How long a stop waits for the worker to finish its tick before aborting the board link [s].
 WORKER_STOP_WAIT_S = 0.5
 #: How long it then waits for the aborted worker [s]; past it the agent stops without it.
 WORKER_ABORT_WAIT_S = 1.0
-#: Pause between two reconnection attempts of a faulty board link [s].
-RECONNECT_PAUSE_S = 0.1
-#: Shortest time between two status messages that only report changed counters [s].
-COUNTERS_PERIOD_S = 1.0
-#: The keys whose malformed messages are counted (keys of :attr:`Agent.malformed`).
-INPUT_KEYS = ("tick", "y", "control", "set", "mocap")
-#: Board errors that mean the link failed (as opposed to a request the board refused).
-LINK_FAULTS = (BoardTimeoutError, BoardConnectionError)
 
 
 class StopRequestedError(HilswarmError, RuntimeError):
@@ -151,10 +145,6 @@ class StopRequestedError(HilswarmError, RuntimeError):
     def __init__(self, message: str, *, orderly: bool = False) -> None:
         super().__init__(message)
         self.orderly = orderly
-
-
-class _QuitRequestedError(HilswarmError, RuntimeError):
-    """Internal: the worker was told to quit while riding out a board link fault."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -216,10 +206,8 @@ class Agent:
             config.neighbours, config.agent_names, config.dt, config.lockstep_window
         )
         self._engine_lock = threading.Lock()
-        #: Messages that could not be decoded, by key (see the module docstring).
-        self.malformed: dict[str, int] = dict.fromkeys(INPUT_KEYS, 0)
-        self.skipped = 0  # ticks this agent missed in total
-        self.link_faults = 0  # board link faults ridden out (or not)
+        #: The input and fault counters of the status messages.
+        self.status_counters = AgentCounters(self.engine, self._engine_lock)
         self._link_down = False  # the board link failed for good: no more exchanges
         self._work: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
         self._wake_pending = False
@@ -228,13 +216,7 @@ class Agent:
         self._stop_requested = ""
         self._manager_seen = threading.Event()
         self._queue_replay: list[tuple[Any, ...]] = []
-        self._telemetry: TelemetryBatcher | None = None
-        self._telemetry_pub: zenoh.Publisher | None = None
-        self._telemetry_heads: dict[str, bytes] = {}
-        self._telemetry_due = math.inf  # wall clock [s, self._clock] of the next batch
-        self.telemetry_batches = 0
-        self._counters_published: tuple[int, ...] = ()
-        self._counters_due = -math.inf  # clock [s] of the next counters check
+        self._telemetry: TelemetryFeed | None = None  # the vehicle's telemetry, if it has any
         self._extra_listeners: tuple[threading.Event, threading.Event] = (
             threading.Event(),
             threading.Event(),
@@ -245,30 +227,24 @@ class Agent:
     def publish_telemetry(self) -> int:
         """Publish the telemetry rows appended since the previous batch; returns the row count.
 
-        Does nothing before the publisher is declared or when nothing is new. Called by the
-        thread that owns the hardware (the worker while it runs, else the main thread).
+        Does nothing before the publisher is declared, after shutdown or when nothing is new.
+        Called by the thread that owns the hardware (the worker while it runs, else the main
+        thread).
         """
-        batcher, publisher = self._telemetry, self._telemetry_pub
-        self._telemetry_due = self._clock() + bus.TELEMETRY_PERIOD_S
-        if batcher is None or publisher is None:
-            return 0
-        rows = batcher.take()
-        if not rows:
-            return 0
-        heads = self._telemetry_heads
-        parts = []
-        count = 0
-        for channel, arrays in rows:
-            head = heads.get(channel.name)
-            if head is None:
-                head = heads[channel.name] = bus.telemetry_channel_head(
-                    channel.name, channel.fields
-                )
-            parts.append((head, arrays.k, arrays.t, arrays.values))
-            count += arrays.k.shape[0]
-        publisher.put(bus.encode_telemetry_batch(parts))
-        self.telemetry_batches += 1
-        return count
+        feed = self._telemetry
+        return 0 if feed is None else feed.publish(self._clock())
+
+    @property
+    def telemetry_batches(self) -> int:
+        """Telemetry batches published so far."""
+        feed = self._telemetry
+        return 0 if feed is None else feed.batches
+
+    @property
+    def _telemetry_due(self) -> float:
+        """When the next telemetry batch is due [s, the agent's clock]; ``inf``: never."""
+        feed = self._telemetry
+        return math.inf if feed is None else feed.due
 
     def _owns_hardware(self) -> bool:
         """True on the thread that may touch the vehicle, board and telemetry right now."""
@@ -298,30 +274,22 @@ class Agent:
 
     def counters(self) -> dict[str, Any]:
         """The input and fault counters of status messages (non-zero ones only)."""
-        with self._engine_lock:
-            dropped = dict(self.engine.counters())
-            malformed = {key: n for key, n in self.malformed.items() if n}
-            inputs_missing = self.engine.take_inputs_missing()
-        fields: dict[str, Any] = {}
-        if inputs_missing:
-            fields["inputs_missing"] = inputs_missing
-        if malformed:
-            fields["malformed"] = malformed
-        if dropped:
-            fields["dropped"] = dropped
-        if self.skipped:
-            fields["skipped"] = self.skipped
-        if self.link_faults:
-            fields["link_faults"] = self.link_faults
-        stale = self._stale_samples()
-        if stale:
-            fields["stale_samples"] = stale
-        return fields
+        return self.status_counters.fields()
 
-    def _stale_samples(self) -> int:
-        """Board answers marked STALE so far (0 for links that do not count them)."""
-        board = self.hardware.board if self.hardware is not None else None
-        return _board_count(board, "stale_samples")
+    @property
+    def malformed(self) -> dict[str, int]:
+        """Messages that could not be decoded, by key (see the module docstring)."""
+        return self.status_counters.malformed
+
+    @property
+    def skipped(self) -> int:
+        """Ticks this agent missed in total."""
+        return self.status_counters.skipped
+
+    @property
+    def link_faults(self) -> int:
+        """Board link faults ridden out (or not)."""
+        return self.status_counters.link_faults
 
     def publish_status(self, fields: Mapping[str, Any], *, detail: str = "") -> None:
         """Publish a status message (JSON) with the current tick, state and counters."""
@@ -341,23 +309,8 @@ class Agent:
 
     def _publish_changed_counters(self) -> None:
         """A status of kind ``inputs`` when the counters changed since the last one (at most
-        once per :data:`COUNTERS_PERIOD_S`)."""
-        now = self._clock()
-        if now < self._counters_due:
-            return
-        self._counters_due = now + COUNTERS_PERIOD_S
-        with self._engine_lock:
-            snapshot = (
-                *self.engine.dropped.values(),
-                self.engine.stale,
-                *self.malformed.values(),
-                self.skipped,
-                self.link_faults,
-                self._stale_samples(),
-            )
-            pending = bool(self.engine.inputs_missing)
-        if pending or (snapshot != self._counters_published and any(snapshot)):
-            self._counters_published = snapshot
+        once per :data:`~hilswarm.agents.agent_counters.COUNTERS_PERIOD_S`)."""
+        if self.status_counters.changed(self._clock()):
             self.publish_status({"kind": "inputs"}, detail="input and fault counters")
 
     # -- start-up --------------------------------------------------------------------------
@@ -428,12 +381,11 @@ class Agent:
         entities: list[Any] = [self._y_pub, self._u_pub, self._x_pub]
         telemetry = getattr(self.hardware.vehicle, "telemetry", None) if self.hardware else None
         if telemetry is not None and len(telemetry):
-            self._telemetry = TelemetryBatcher(telemetry, skip=DUPLICATE_CHANNELS)
-            self._telemetry_pub = session.declare_publisher(
-                keys.telemetry_batches(name), **bus.DATA_QOS
+            publisher = session.declare_publisher(keys.telemetry_batches(name), **bus.DATA_QOS)
+            entities.append(publisher)
+            self._telemetry = TelemetryFeed(
+                telemetry, publisher, now=self._clock(), skip=DUPLICATE_CHANNELS
             )
-            entities.append(self._telemetry_pub)
-            self._telemetry_due = self._clock() + bus.TELEMETRY_PERIOD_S
         receive_neighbour, put_work = self.receive_neighbour, self._work.put
         for neighbour in self.config.neighbours:
             entities.append(
@@ -609,6 +561,7 @@ class Agent:
     def use_hardware(self, hardware: AgentHardware) -> None:
         """Take the built vehicle/board/controller (``run`` does this with its factory)."""
         self.hardware = hardware
+        self.status_counters.board = hardware.board
         self._u = np.zeros(int(hardware.vehicle.n_inputs))
         add_listener = getattr(hardware.board, "add_link_listener", None)
         if add_listener is not None:
@@ -617,7 +570,7 @@ class Agent:
     def _on_link_event(self, kind: str, detail: str) -> None:
         """A board link event, on the thread whose request met it (the worker's exchange)."""
         if kind == "disconnected" and self.lifecycle.state_id == "running":
-            self.link_faults += 1
+            self.status_counters.link_faults += 1
             self._transition("degrade", f"board link lost at tick {self.k + 1}: {detail}")
         elif kind == "reconnected":
             self._transition("recover", f"board link back: {detail}")
@@ -625,8 +578,7 @@ class Agent:
     # -- bus callbacks: decode and hand off ------------------------------------------------
 
     def _count_malformed(self, key: str) -> None:
-        with self._engine_lock:  # several bus threads may count at once
-            self.malformed[key] += 1
+        self.status_counters.count_malformed(key)  # several bus threads may count at once
 
     def _wake(self) -> None:
         """Wake the worker (one token at a time: the worker takes every ready tick)."""
@@ -752,7 +704,7 @@ class Agent:
                 self._run_ready_ticks()
                 if self._clock() >= self._telemetry_due:
                     self.publish_telemetry()
-        except _QuitRequestedError:
+        except QuitRequestedError:
             return
         except Exception as exc:  # the main thread re-raises it: safe mode, exit status 1
             with self._engine_lock:
@@ -864,7 +816,7 @@ class Agent:
                 self._go_safe(f"controller failed at tick {k}: {type(exc).__name__}: {exc}")
                 u_new = None
         t1 = t_link = clock()
-        retries = _link_retries(hw.board)
+        retries = link_retries(hw.board)
         try:
             if u_new is not None and lifecycle.state_id == "running":
                 vehicle.apply(u_new)
@@ -880,7 +832,7 @@ class Agent:
             y = vehicle.sense(k, t)
             if type(y) is not np.ndarray or y.dtype != np.float64:
                 y = np.asarray(y, dtype=np.float64)
-        except _QuitRequestedError:
+        except QuitRequestedError:
             raise
         except Exception as exc:  # board link or user vehicle code: safe mode, keep answering
             t2 = clock()
@@ -895,10 +847,10 @@ class Agent:
         self.k = k
         self._y = y
         if skipped:
-            self.skipped += skipped
+            self.status_counters.skipped += skipped
         x_hat = hw.model.x_hat if u_new is not None else None
-        retries = _link_retries(hw.board) - retries
-        stages = _link_stages(hw.board, k > 0)  # the XBee gateway's part of link_s, if any
+        retries = link_retries(hw.board) - retries
+        stages = link_stages(hw.board, k > 0)  # the XBee gateway's part of link_s, if any
         timing = bus.AgentTiming(
             t1 - t0, t_link - t1, t3 - t2, skipped, t2 - t_link, retries, *stages
         )
@@ -922,25 +874,9 @@ class Agent:
             raise fault
         start = self._clock()
         if state != "degraded":  # (a lost port made it degraded already)
-            self.link_faults += 1
+            self.status_counters.link_faults += 1
             self._transition("degrade", f"board link fault at tick {k}: {fault}")
-        last: BoardError = fault
-        attempts = 0
-        while True:
-            if self._quitting.is_set():
-                raise _QuitRequestedError(f"stopped while the board link was down: {last}")
-            attempts += 1
-            try:
-                board.reconnect()
-                break
-            except LINK_FAULTS as exc:
-                last = exc
-            if self._clock() - start >= timeout:
-                raise BoardConnectionError(
-                    f"board link not back within {timeout:g} s ({attempts} attempts): {last}"
-                ) from last
-            if self._quitting.wait(RECONNECT_PAUSE_S):
-                raise _QuitRequestedError(f"stopped while the board link was down: {last}")
+        attempts = reconnect_within(board, timeout, fault, self._quitting, self._clock)
         self._transition(
             "recover",
             f"board link back after {self._clock() - start:.2f} s ({attempts} attempts); "
@@ -1026,7 +962,8 @@ class Agent:
         worker_done = self._stop_worker()
         if worker_done:
             self._publish_telemetry_safely()
-        self._telemetry_pub = None
+        if self._telemetry is not None:
+            self._telemetry.close()
         if self.lifecycle.state_id == "safe":
             received = sorted(self.received_from)
             self._transition("stop", f"received from: {', '.join(received) or '-'}")
@@ -1055,27 +992,6 @@ class Agent:
 
 #: Name of the instance manager's liveliness token (``hilswarm/<exp>/alive/_manager``).
 MANAGER_NAME = "_manager"
-
-
-def _board_count(board: Any, name: str) -> int:
-    """The board link's counter ``name`` so far (``stats.<name>``; 0 for links without it)."""
-    return int(getattr(getattr(board, "stats", None), name, 0) or 0)
-
-
-def _link_retries(board: Any) -> int:
-    """Re-sends of board requests so far (0 for links that do not count them)."""
-    return _board_count(board, "retries")
-
-
-def _link_stages(board: Any, exchanged: bool) -> tuple[float, float] | tuple[()]:
-    """``(gateway_s, radio_s)`` [s] of the tick's link round trip for a link through the XBee
-    gateway (``take_link_stages``; 0 when the tick made no exchange: tick 0 senses what
-    ``connect`` primed), ``()`` for other links (no gateway stage in the ledger)."""
-    take = getattr(board, "take_link_stages", None)
-    if take is None:
-        return ()
-    stages = take()
-    return stages if exchanged else (0.0, 0.0)
 
 
 def _jsonable(value: Any) -> Any:
