@@ -105,6 +105,8 @@ class RobotStats:
     rssi_dbm: int | None = None
     sections: int = 0  # broadcast mode: BCAST sections sent to it
     stale_replies: int = 0  # broadcast mode: TICK_REPLYs the gateway answered itself
+    fresh_replies: int = 0  # broadcast mode: the robot's own replies received
+    asked_again: int = 0  # broadcast mode: asked out of turn, its last reply lost or late
 
 
 @dataclass
@@ -559,6 +561,14 @@ class Gateway:
 
     def snapshot(self) -> dict[str, Any]:
         """The counters as a JSON-ready dict (what ``gateway/stats`` carries)."""
+        if self.packer is not None:
+            with self._packer_lock:
+                replies = self.packer.stats()
+            for name, counts in replies.items():
+                robot = self.stats.robots.get(name)
+                if robot is not None:
+                    robot.fresh_replies = counts["fresh_replies"]
+                    robot.asked_again = counts["asked_again"]
         data = asdict(self.stats)
         data["connected"] = self.connected.is_set()
         data["family"] = self.family.value

@@ -138,6 +138,7 @@ class _Robot:
     rx: FrameDecoder = field(default_factory=FrameDecoder)
     fresh: int = 0
     stale: int = 0
+    asked_again: int = 0  # rounds it was asked out of turn: its last requested reply missing
 
     @property
     def bcast_id(self) -> int:
@@ -284,6 +285,8 @@ class BroadcastPacker:
             # asked last time and never answered; or (at once) no reply for too long
             missed = robot.owed is not None or (self.at_once and robot.samples is not None)
             reply = turn or missed or robot.samples is None
+            if reply and not turn and robot.samples is not None:
+                robot.asked_again += 1
             sections.append((name, BcastSection(robot.bcast_id, reply, pending.data)))
             if reply:
                 robot.owed = (-1, pending.agent_seq, pending.read_pins)  # seq set below
@@ -391,8 +394,10 @@ class BroadcastPacker:
         return ToAgent(robot.name, frame_payload(encode_payload(reply)))
 
     def stats(self) -> dict[str, dict[str, int]]:
-        """Per robot: fresh and stale replies so far, and its broadcast id."""
+        """Per robot so far: its own replies received (``fresh_replies``), the rounds it was
+        asked out of its turn because its last requested reply had not come (``asked_again``:
+        a reply lost or late on the radio), and its broadcast id."""
         return {
-            n: {"bcast_id": r.bcast_id, "fresh_replies": r.fresh, "stale_replies": r.stale}
+            n: {"bcast_id": r.bcast_id, "fresh_replies": r.fresh, "asked_again": r.asked_again}
             for n, r in self.robots.items()
         }

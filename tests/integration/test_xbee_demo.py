@@ -171,5 +171,8 @@ def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
         assert len(own) <= stale <= len(own) + 1, (name, len(own), stale)
         if answer == "at_once":  # every answer but the robot's first reply
             assert stale >= 95, (name, stale)
-        else:  # reply_every = 5: the robot's own replies every 5th tick, through the radio
-            assert 70 <= stale <= 85, (name, stale)
+        else:  # reply_every = 5: the robot's own replies every 5th tick, through the radio,
+            # and on the ticks after a reply that was lost or late (asked again, counted)
+            again = totals["robots"][name]["asked_again"]
+            assert 70 <= stale + again <= 85, (name, stale, again)
+            assert totals["robots"][name]["fresh_replies"] >= 100 - stale - 1, name

@@ -144,6 +144,9 @@ def test_round_robin_replies_and_stale_answers() -> None:
                 else True
             )
     assert sorted(asked[n][0] for n in names) == [0, 1, 2, 3, 4]  # one reply per tick
+    stats = packer.stats()
+    assert all(stats[n]["asked_again"] == 0 for n in names)  # every reply came: none re-asked
+    assert all(stats[n]["fresh_replies"] == 3 for n in names)  # the warm-up's and two turns
 
 
 def test_a_missed_reply_stops_the_stale_answers_until_the_robot_answers() -> None:
@@ -165,6 +168,8 @@ def test_a_missed_reply_stops_the_stale_answers_until_the_robot_answers() -> Non
     assert not [a for a in actions if isinstance(a, ToAgent)]
     (frame,) = [a for a in actions if isinstance(a, Broadcast)]
     assert parse_payload(FrameDecoder().feed(frame.data)[0]).sections[0].reply
+    # rounds 4 and 5 asked it out of turn (counted), its own reply of round 1 the only one
+    assert packer.stats()[name] == {"bcast_id": 1, "fresh_replies": 1, "asked_again": 2}
 
 
 def test_a_tick_that_cannot_be_packed_goes_by_unicast() -> None:
