@@ -117,6 +117,7 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "MANAGER_NAME",
     "Agent",
+    "AgentAlreadyRunningError",
     "AgentConfig",
     "AgentConfigError",
     "AgentHardware",
@@ -128,10 +129,17 @@ __all__ = [
 
 #: How long an agent waits for the router, its publishers' subscribers and the manager [s].
 DEFAULT_STARTUP_TIMEOUT_S = 20.0
+#: Bound on asking the router whether this agent's liveliness token is already there [s].
+ALREADY_RUNNING_CHECK_S = 2.0
 #: How long a stop waits for the worker to finish its tick before aborting the board link [s].
 WORKER_STOP_WAIT_S = 0.5
 #: How long it then waits for the aborted worker [s]; past it the agent stops without it.
 WORKER_ABORT_WAIT_S = 1.0
+
+
+class AgentAlreadyRunningError(HilswarmError, RuntimeError):
+    """Another process already runs this agent on the run's bus (its liveliness token is
+    there): a second one would publish the same outputs and steer the same vehicle."""
 
 
 class StopRequestedError(HilswarmError, RuntimeError):
@@ -364,6 +372,7 @@ class Agent:
     def _open_bus(self) -> zenoh.Session:
         session = bus.open_session(bus.client_config(self.endpoints, security=self._security))
         self._session = session
+        self._refuse_if_running(session)  # before anything of this agent is on the bus
         self._status_pub = session.declare_publisher(
             self.keys.status(self.config.name), **bus.DATA_QOS
         )
@@ -372,6 +381,21 @@ class Agent:
             "the orchestrator to subscribe to the status key",
         )
         return session
+
+    def _refuse_if_running(self, session: zenoh.Session) -> None:
+        """Raise :class:`AgentAlreadyRunningError` when this agent's liveliness token is on
+        the bus already: another process runs it (``hilswarm agent`` for an agent the run
+        started itself, or the same remote agent started twice). Checked before this process
+        declares anything or opens its board, so the running agent is left undisturbed."""
+        name = self.config.name
+        replies = session.liveliness().get(self.keys.alive(name), timeout=ALREADY_RUNNING_CHECK_S)
+        if any(reply.ok is not None for reply in replies):
+            raise AgentAlreadyRunningError(
+                f"agent {name!r} is already running in {self.keys.experiment} "
+                f"(run {self.keys.run_id or '-'}): another process holds its place on the bus. "
+                "A run starts every agent itself except those given with --remote; "
+                "start only those with `hilswarm agent`, each once"
+            )
 
     def _declare(self, session: zenoh.Session) -> None:
         keys, name = self.keys, self.config.name
@@ -475,6 +499,9 @@ class Agent:
         except StopRequestedError as exc:
             self._finish(str(exc), fault=not exc.orderly)
             status = 0
+        except AgentAlreadyRunningError as exc:  # nothing of ours on the bus: nothing to undo
+            logger.error("%s", exc)
+            status = 2
         except HilswarmError as exc:
             logger.error("agent %s failed: %s", self.config.name, exc)
             self._finish(f"failed: {exc}", fault=True)

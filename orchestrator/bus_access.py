@@ -21,7 +21,8 @@ What follows from the experiment (:func:`run_grants`):
 * agent i: put ``agent/<i>/**``, tokens ``alive/<i>``, queryable ``agent/<i>/set``, subscribe
   ``tick``, ``control`` and ``agent/<j>/y`` for exactly its graph neighbours j (the adjacency
   matrix enforced by the router), and its own ``agent/<i>/link/{rx,robot/in}`` (a board behind
-  the XBee gateway), watch ``alive/_manager``;
+  the XBee gateway), watch ``alive/_manager`` and its own ``alive/<i>`` (a second process
+  for the same agent is refused at start);
 * operator (``hilswarm stop`` / ``set``): put ``manager/request`` (and ``gateway/sim``, fault
   commands to a simulated XBee coordinator), subscribe ``manager/status``, query
   ``agent/*/set``;
@@ -116,7 +117,8 @@ def agent_grants(
             *mocap_sub,
         ),
         tokens=(f"alive/{name}",),
-        watch_tokens=(f"alive/{MANAGER_TOKEN}",),
+        # its own token too: at start it asks whether another process runs it already
+        watch_tokens=(f"alive/{MANAGER_TOKEN}", f"alive/{name}"),
         queryables=(f"agent/{name}/set",),
     )
 

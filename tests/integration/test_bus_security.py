@@ -552,3 +552,55 @@ def test_ps_shows_the_local_agents_while_the_run_waits_for_a_remote_one(
     )
     run.process.send_signal(signal.SIGINT)
     assert run.wait(60) == 130, run.output()
+
+
+def test_a_second_process_for_a_running_agent_is_refused_and_the_run_goes_on(
+    tmp_path: Path, runs: list[RunProcess]
+) -> None:
+    """``hilswarm agent --name a`` while the run's own agent a is armed (the run waits for
+    ``--remote d``): refused at once, exit 2, nothing of it on the bus; then d joins, and the
+    run completes clean with every tick of every agent exactly once."""
+    experiment = toy_run(tmp_path)
+    run = RunProcess(tmp_path, experiment, "--no-check", "--remote", "d", "--start-timeout", "120")
+    runs.append(run)
+    entry = run.entry()
+    run.remember_agents(3)
+
+    def agent(name: str, log: Path) -> subprocess.Popen[bytes]:
+        with log.open("wb") as out:
+            return subprocess.Popen(
+                [*CLI, "agent", "--experiment", str(experiment), "--name", name],
+                env=run.env, cwd=tmp_path, stdin=subprocess.DEVNULL, stdout=out,
+                stderr=subprocess.STDOUT, start_new_session=True,
+            )  # fmt: skip
+
+    def armed() -> bool:
+        listed = subprocess.run(
+            [*CLI, "ps", "--json"], capture_output=True, text=True, timeout=60, env=run.env,
+            check=False,
+        )  # fmt: skip
+        rows = json.loads(listed.stdout)["runs"] if listed.returncode == 0 else []
+        return bool(rows) and rows[0]["agents"].get("a") == "armed"
+
+    wait_for(armed, 60, "agent a armed")
+    duplicate = agent("a", tmp_path / "duplicate.log")
+    runs_agent: list[subprocess.Popen[bytes]] = [duplicate]
+    try:
+        assert duplicate.wait(60) == 2, (tmp_path / "duplicate.log").read_text()
+        said = (tmp_path / "duplicate.log").read_text()
+        assert "agent 'a' is already running" in said and entry.run_id in said, said
+        assert "Traceback" not in said, said
+        remote = agent("d", tmp_path / "remote.log")
+        runs_agent.append(remote)
+        assert run.wait(240) == 0, run.output() + (tmp_path / "remote.log").read_text()
+        assert remote.wait(60) == 0, (tmp_path / "remote.log").read_text()
+    finally:
+        for process in runs_agent:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+                process.wait(10)
+    recording = read_recording(run.out)
+    for name in AGENTS:
+        assert [m["k"] for m in recording[f"/{name}/y"]] == list(range(N_TICKS)), name
+        dropped = [m.get("dropped") for m in recording[f"/{name}/status"] if m.get("dropped")]
+        assert not dropped, (name, dropped)
