@@ -108,19 +108,23 @@ def check_file(
     overrides: Mapping[str, Any] | None = None,
     max_agents: int = DEFAULT_MAX_AGENTS,
     remote: Container[str] = (),
+    remote_gateway: bool = False,
 ) -> CheckReport:
     """Load ``path`` (with ``overrides``, as :func:`load_experiment`) and run every check.
 
     The agents whose own tables are valid are checked even when another part of the file is
-    broken, so every problem shows in one pass.
+    broken, so every problem shows in one pass. ``remote`` agents' boards and a
+    ``remote_gateway``'s coordinator are on other machines: their devices are not looked for.
     """
     parts = load_parts(path, overrides=overrides, max_agents=max_agents, remote=remote)
     report = CheckReport(Path(path), parts.experiment, list(parts.problems))
-    check_parts(parts, report)
+    check_parts(parts, report, remote_gateway=remote_gateway)
     return report
 
 
-def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
+def check_parts(
+    parts: ExperimentParts, report: CheckReport, *, remote_gateway: bool = False
+) -> None:
     """The deep checks of everything in ``parts`` that loaded (see :func:`check_file`)."""
     add_search_path(parts.path.parent)  # user "module:Class" names beside the file
     if parts.graph is not None:
@@ -140,7 +144,7 @@ def check_parts(parts: ExperimentParts, report: CheckReport) -> None:
     for check in built.values():
         check.check_controller(output_sizes, report.facts)
     vehicles = {name: check.vehicle for name, check in built.items()}
-    check_gateway(parts, vehicles, report.problems, report.warnings)
+    check_gateway(parts, vehicles, report.problems, report.warnings, local=not remote_gateway)
 
 
 # -- experiment-wide checks ---------------------------------------------------------------------

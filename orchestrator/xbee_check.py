@@ -30,9 +30,16 @@ def check_gateway(
     vehicles: Mapping[str, Any],
     problems: list[Problem],
     warnings: list[Problem],
+    *,
+    local: bool = True,
 ) -> None:
     """Add the problems and warnings of ``experiment``'s XBee links and gateway budget (of the
-    agents that loaded; the budget when ``[experiment]`` is valid)."""
+    agents that loaded; the budget when ``[experiment]`` is valid), and, when an agent is on
+    an XBee link and the gateway runs here (``local``), its coordinator's port: a device path
+    must exist, as an agent's serial link must."""
+    from hilswarm.agents.link.serial_board import (  # noqa: PLC0415
+        validate_url as validate_serial_url,
+    )
     from hilswarm.agents.xbee.api_frames import FrameFamily  # noqa: PLC0415 - xbee files only
     from hilswarm.agents.xbee.budget import (  # noqa: PLC0415
         RobotTraffic,
@@ -91,6 +98,11 @@ def check_gateway(
             continue  # its vehicle did not build: reported elsewhere
         request, reply = tick_frame_sizes(pins())
         robots.append(RobotTraffic(spec.name, request, reply, section_size(pins()), every or 1))
+    if addresses and not config.simulated:
+        try:
+            validate_serial_url(config.port, local=local)
+        except LinkUrlError as exc:
+            problems.append(Problem(experiment.path, "gateway.port", f"the coordinator: {exc}"))
     if not robots or experiment.settings is None:
         return
     budget = budget_for(

@@ -212,9 +212,15 @@ def run(args: argparse.Namespace) -> int:
         )
     else:
         report = check_file(
-            args.file, overrides=overrides, max_agents=args.max_agents, remote=args.remote
+            args.file,
+            overrides=overrides,
+            max_agents=args.max_agents,
+            remote=args.remote,
+            remote_gateway=args.remote_gateway,
         )
         experiment = report.raise_for_problems()
+        for warning in report.warnings:  # as `hilswarm check` shows them: nothing silent
+            print(f"warning: {warning}", file=sys.stderr)
     unknown = [name for name in args.remote if name not in experiment.agent_names]
     if unknown:
         print(f"hilswarm run: --remote names unknown agents: {', '.join(unknown)}", file=sys.stderr)

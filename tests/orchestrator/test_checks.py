@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -413,3 +416,48 @@ def test_hilswarm_agent_checks_only_its_own_device(
     err = capsys.readouterr().err
     assert "agents.f1.link: serial device '/dev/ttyUSB8' does not exist" in err
     assert "agents.leader.link" not in err
+
+
+def test_an_unused_link_is_a_warning_of_check_and_of_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A link given to a vehicle that needs no board is not used: ``check`` warns and its
+    summary says so, and ``run`` prints the same warning (it used to run without a word)."""
+    path = GRAPHS / "consensus_ring.toml"
+    link = ["--link", "a0=socket://127.0.0.1:1"]
+    assert main(["check", str(path), *link]) == 0
+    captured = capsys.readouterr()
+    warning = "agents.a0.link: vehicle 'simulated' needs no board; link 'socket://127.0.0.1:1'"
+    assert warning in captured.err
+    assert "a0: simulated via (no board; link socket://127.0.0.1:1 not used)" in captured.out
+    out = tmp_path / "run.mcap"
+    done = subprocess.run(
+        [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(path), *link,
+         "--duration", "0.25", "--out", str(out)],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path, stdin=subprocess.DEVNULL,
+        env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert f"warning: {path}:{warning}" in done.stderr, done.stderr
+
+
+def test_the_gateway_port_is_checked_where_the_gateway_runs(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A coordinator on a device that is not there: ``check`` and ``run`` refuse it as they
+    refuse an agent's missing serial device (``run`` used to start and then fail); with
+    ``--remote-gateway`` the coordinator is on another machine and its device is not looked for."""
+    text = (GRAPHS / "xbee_swarm.toml").read_text()
+    assert '\nport = "sim"' in text
+    path = tmp_path / "xbee_usb9.toml"
+    path.write_text(text.replace('\nport = "sim"', '\nport = "/dev/ttyUSB9"', 1))
+    assert main(["check", str(path)]) == 2
+    err = capsys.readouterr().err
+    want = f"{path}:gateway.port: the coordinator: serial device '/dev/ttyUSB9' does not exist"
+    assert want in err, err
+    out = tmp_path / "run.mcap"
+    assert main(["run", str(path), "--out", str(out)]) == 2
+    assert want in capsys.readouterr().err
+    assert not out.exists()
+    report = check_file(path, remote_gateway=True)
+    assert not [p for p in report.problems if p.key == "gateway.port"], report.problems
