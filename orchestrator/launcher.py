@@ -193,20 +193,30 @@ class AgentLauncher:
             described = ", ".join(f"{name} (exit status {code})" for name, code in exited.items())
             raise AgentProcessError(f"agent process exited: {described}; see its log above")
 
-    def stop(self, *, grace_s: float = 5.0, term_s: float = 3.0) -> dict[str, int | None]:
+    def stop(
+        self, *, grace_s: float = 5.0, term_s: float = 3.0, told: bool = True
+    ) -> dict[str, int | None]:
         """Make sure every agent process is gone; returns exit statuses (None: unkillable).
 
         Waits up to ``grace_s`` for processes to exit by themselves (they were told to stop
         on the bus), then SIGTERMs the process groups of the rest and waits ``term_s``, then
         SIGKILLs what is left. A stopped (SIGSTOP) process is continued so it can die.
+        ``told=False``: nobody told them on the bus (the run never began, or ended before its
+        stop command): SIGTERM, an agent's own stop request, goes to every one at once,
+        without a grace period and without a warning.
         """
+        if not told:
+            grace_s = 0.0
         codes: dict[str, int | None] = {}
         for name, process in self.processes.items():
             codes[name] = _wait(process, grace_s)
             grace_s = 0.2 if codes[name] is None else grace_s  # do not wait n * grace_s
         for name, process in self.processes.items():
             if codes[name] is None:
-                logger.warning("agent %s did not exit; sending SIGTERM", name)
+                if told:
+                    logger.warning("agent %s did not exit; sending SIGTERM", name)
+                else:
+                    logger.info("agent %s: not told to stop on the bus; sending SIGTERM", name)
                 _signal_group(process, signal.SIGTERM)
                 _signal_group(process, signal.SIGCONT)
         for name, process in self.processes.items():

@@ -399,7 +399,7 @@ def _run(
     finally:
         record.entry.state = "stopping"
         display.finish()
-        launcher.stop()
+        launcher.stop(told=summary is not None)  # a summary: the manager stopped the agents
         if gateway is not None:
             gateway.stop()
         if mocap is not None:

@@ -228,3 +228,20 @@ def test_recover_on_a_full_disk_says_so_and_leaves_no_file(tmp_path: Path) -> No
     assert "Traceback" not in output, output
     listing = (keep / "listing").read_text().split()
     assert "fixed.mcap" not in listing, listing  # no empty or partial file left
+
+
+def test_a_run_that_never_began_stops_its_agents_at_once_without_warnings(tmp_path: Path) -> None:
+    """The remote agent never comes: the start-up times out. Nobody told the local agents to
+    stop on the bus, so they get SIGTERM, their own stop request, at once (no grace period,
+    no "did not exit" warning per agent), and the exit status says what failed."""
+    experiment = write_toy_experiment(tmp_path / "toy.toml", duration_s=0.2)
+    code, output = hilswarm(
+        "-v", "run", str(experiment), "--no-check", "--remote", "d", "--start-timeout", "2",
+        "--out", str(tmp_path / "run.mcap"), cwd=tmp_path,
+    )  # fmt: skip
+    assert code == 1, output
+    assert "timed out after 2.0 s waiting for agents: d" in output, output
+    assert "did not exit" not in output and "Traceback" not in output, output
+    for name in ("a", "b", "c"):
+        assert f"agent {name}: not told to stop on the bus; sending SIGTERM" in output, output
+    assert files(tmp_path) == [], output
