@@ -165,7 +165,8 @@ def replay(
         recording: from :func:`load_recording`.
         controllers: agent -> controller (registry name or ``"module:Class"``) used instead of
             the recorded one.
-        params: agent -> parameter changes merged over the recorded parameters.
+        params: agent -> parameter changes merged over the recorded parameters (for an agent
+            replayed with another controller, over those of them that controller takes).
         agents: only these agents (default: every agent with a recorded ``u``).
         search_path: folder searched for user ``module:Class`` names (the experiment's).
 
@@ -198,16 +199,38 @@ def replay(
         controller_name = controllers.get(name, spec.get("controller"))
         try:
             controller = resolve_controller(str(controller_name))()
+            recorded = _recorded_params(name, spec, controller, controller_name)
             model = ControlModel(
                 controller,
                 dt=recording.dt,
                 n_inputs=len(next(iter(trace.u.values()))[1]),
-                params={**(spec.get("params") or {}), **params.get(name, {})},
+                params={**recorded, **params.get(name, {})},
             )
         except (HilswarmError, ImportError, ValueError, TypeError) as exc:
             raise ReplayError(f"agent {name}: controller {controller_name!r}: {exc}") from exc
         results.append(_replay_agent(recording, name, trace, model))
     return results
+
+
+def _recorded_params(
+    name: str, spec: Mapping[str, Any], controller: Any, controller_name: object
+) -> dict[str, Any]:
+    """The recorded parameters the replayed controller takes: all of them for the recorded
+    controller; for another one (``--controller``) those it also has (``default_params``), the
+    others left out (logged): they were the recorded controller's."""
+    recorded = dict(spec.get("params") or {})
+    if str(controller_name) == str(spec.get("controller")):
+        return recorded
+    known = getattr(controller, "default_params", {}) or {}
+    left_out = sorted(set(recorded) - set(known))
+    if left_out:
+        logger.info(
+            "%s: recorded parameters %s are not %s's: left out of the replay",
+            name,
+            ", ".join(left_out),
+            controller_name,
+        )
+    return {key: value for key, value in recorded.items() if key in known}
 
 
 def _replay_agent(

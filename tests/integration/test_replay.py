@@ -139,3 +139,25 @@ def test_a_changed_controller_is_replayed_and_bad_names_exit_2(lead_follow: Path
         assert result.returncode == 2, (bad, result.stdout, result.stderr)
         assert "Traceback" not in result.stderr
     assert "leader, f1, f2" in hilswarm("replay", str(lead_follow), "--set", "x.kp=1").stderr
+
+
+def test_another_controller_gets_only_the_recorded_parameters_it_takes(tmp_path: Path) -> None:
+    """The recorded ``consensus`` parameters (``gain``) are not ``static_gain``'s: replaying a0
+    with ``static_gain`` leaves them out (it used to refuse the replay, "unknown parameter(s)
+    ['gain']", whatever ``--set`` said) and takes ``--set a0.K``; a zero gain commands zero
+    inputs, which diverge from the consensus run at its first controller step."""
+    recording = record("consensus_ring.toml", tmp_path / "ring.mcap", 0.5)
+    result = hilswarm(
+        "replay", str(recording), "--controller", "a0=static_gain",
+        "--set", "a0.K=[[0.0, 0.0], [0.0, 0.0]]", "--agent", "a0", "--json", "--no-plot",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    (a0,) = [json.loads(line) for line in result.stdout.splitlines()]
+    assert a0["agent"] == "a0" and a0["first_divergent_tick"] == 1, a0
+    # the recorded controller keeps every recorded parameter: an unchanged replay is exact
+    same = hilswarm(
+        "replay", str(recording), "--controller", "a0=consensus", "--agent", "a0", "--json",
+        "--no-plot",
+    )  # fmt: skip
+    assert same.returncode == 0, same.stderr
+    assert json.loads(same.stdout)["first_divergent_tick"] is None
