@@ -299,7 +299,8 @@ def parse_link_overrides(items: Sequence[str]) -> dict[str, str]:
     """Turn command-line ``NAME=URL`` items (``--link leader=/dev/ttyUSB0``) into a mapping.
 
     Raises:
-        ExperimentError: an item without ``=`` or with an empty name or URL.
+        ExperimentError: an item without ``=`` or with an empty name or URL, or a second link
+            for the same agent (which one was meant?).
     """
     links: dict[str, str] = {}
     problems: list[Problem] = []
@@ -308,7 +309,13 @@ def parse_link_overrides(items: Sequence[str]) -> dict[str, str]:
         if not sep or not name.strip() or not url.strip():
             problems.append(Problem("--link", item, "expected NAME=URL, e.g. leader=/dev/ttyUSB0"))
             continue
-        links[name.strip()] = url.strip()
+        name = name.strip()
+        if name in links:
+            problems.append(
+                Problem("--link", item, f"agent {name!r} has a --link already ({links[name]})")
+            )
+            continue
+        links[name] = url.strip()
     if problems:
         raise ExperimentError(problems)
     return links

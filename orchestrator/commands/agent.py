@@ -45,9 +45,16 @@ def run(args: argparse.Namespace) -> int:
     """Run the agent until the experiment stops it."""
     # Only this agent's board is on this machine: the others' devices are checked where they run.
     others = _AllBut(args.name)
-    experiment = load_experiment(
-        args.experiment, overrides=overrides_from_args(args), remote=others
-    )
+    overrides = overrides_from_args(args)
+    elsewhere = sorted(set(overrides.get("links", {})) - {args.name})
+    if elsewhere:
+        print(
+            f"hilswarm agent: --link for {', '.join(elsewhere)}: this process runs only agent "
+            f"{args.name!r} (each agent's link is given where that agent runs)",
+            file=sys.stderr,
+        )
+        return 2
+    experiment = load_experiment(args.experiment, overrides=overrides, remote=others)
     add_search_path(experiment.path.parent)  # user "module:Class" names beside the file
     if args.name not in experiment.agent_names:
         known = ", ".join(experiment.agent_names)

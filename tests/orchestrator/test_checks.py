@@ -461,3 +461,15 @@ def test_the_gateway_port_is_checked_where_the_gateway_runs(
     assert not out.exists()
     report = check_file(path, remote_gateway=True)
     assert not [p for p in report.problems if p.key == "gateway.port"], report.problems
+
+
+def test_a_second_link_for_one_agent_and_a_link_for_another_agent_are_refused(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    path = GRAPHS / "lead_follow.toml"
+    assert main(["check", str(path), "--link", "leader=sim://", "--link", "leader=sim://uno"]) == 2
+    assert "agent 'leader' has a --link already (sim://)" in capsys.readouterr().err
+    # `hilswarm agent` runs one agent: a link for another one would be silently unused
+    assert main(["agent", "--experiment", str(path), "--name", "f2", "--link", "f1=sim://"]) == 2
+    err = capsys.readouterr().err
+    assert "--link for f1: this process runs only agent 'f2'" in err and "Traceback" not in err
