@@ -12,15 +12,19 @@ mounts. The check creates no folder: a command that fails leaves nothing behind.
 
 :func:`is_no_space` is the one rule for "the disk is full": only ``ENOSPC`` and ``EDQUOT``
 say so, found on an ``OSError`` or in the text of a writer's error (foxglove-sdk reports
-``... (os error 28)``).
+``... (os error 28)``, or logs ``Io(Os { code: 28 ...`` and then fails with an error that no
+longer names it: :func:`watch_writer_errors` keeps that).
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import logging
 import os
 import re
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 from hilswarm.agents.errors import HilswarmError
@@ -28,7 +32,9 @@ from hilswarm.agents.errors import HilswarmError
 #: errno values that mean the disk (or the user's quota) is full.
 NO_SPACE_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 
-_OS_ERROR = re.compile(r"\(os error (\d+)\)")
+#: How foxglove-sdk (Rust) writes an I/O error's number: ``... (os error 28)`` in an error's
+#: text, ``Io(Os { code: 28, ...`` in what its writer logs.
+_OS_ERROR = re.compile(r"\(os error (\d+)\)|\bOs \{ code: (\d+)")
 _PROBE_PREFIX = ".hilswarm-probe-"
 
 
@@ -115,13 +121,49 @@ def error_number(exc: BaseException) -> int | None:
         seen.add(id(current))
         if isinstance(current, OSError) and current.errno is not None:
             return current.errno
-        match = _OS_ERROR.search(str(current))
-        if match:
-            return int(match.group(1))
+        number = errno_in_text(str(current))
+        if number is not None:
+            return number
         current = current.__cause__ or current.__context__
     return None
 
 
-def is_no_space(exc: BaseException) -> bool:
-    """True if ``exc`` says the disk or the quota is full (``ENOSPC``, ``EDQUOT``), only."""
-    return error_number(exc) in NO_SPACE_ERRNOS
+def errno_in_text(text: str) -> int | None:
+    """The I/O error number a foxglove-sdk message names (``(os error N)``, ``Os { code: N``)."""
+    match = _OS_ERROR.search(text)
+    return None if match is None else int(match.group(1) or match.group(2))
+
+
+def is_no_space(exc: BaseException | str) -> bool:
+    """True if ``exc`` (an exception, or the text of a logged error) says the disk or the
+    quota is full (``ENOSPC``, ``EDQUOT``), and only then."""
+    number = errno_in_text(exc) if isinstance(exc, str) else error_number(exc)
+    return number in NO_SPACE_ERRNOS
+
+
+class WriterErrors(logging.Handler):
+    """Keeps the full-disk error foxglove-sdk's writer logs: its later errors ("attempted
+    another write after a write method failed") no longer name the cause."""
+
+    def __init__(self) -> None:
+        super().__init__(level=logging.WARNING)
+        #: The first logged message that says the disk is full ("" if none).
+        self.no_space = ""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if not self.no_space:
+            text = record.getMessage()
+            if is_no_space(text):
+                self.no_space = text
+
+
+@contextlib.contextmanager
+def watch_writer_errors() -> Iterator[WriterErrors]:
+    """What foxglove-sdk logs while the block writes (:class:`WriterErrors`)."""
+    watcher = WriterErrors()
+    foxglove_log = logging.getLogger("foxglove")
+    foxglove_log.addHandler(watcher)
+    try:
+        yield watcher
+    finally:
+        foxglove_log.removeHandler(watcher)

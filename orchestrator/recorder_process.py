@@ -70,7 +70,7 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION
 from hilswarm.orchestrator.cpu_priority import PriorityError, lower_own_priority
 from hilswarm.orchestrator.experiment import Experiment
-from hilswarm.orchestrator.output_paths import is_no_space
+from hilswarm.orchestrator.output_paths import is_no_space, watch_writer_errors
 from hilswarm.orchestrator.record_stream import definitions
 from hilswarm.orchestrator.recorder import Recorder, record_vehicles
 from hilswarm.orchestrator.run_summary import RecordingReport
@@ -748,12 +748,15 @@ def record_stream(fd: int, out: IO[bytes], *, clock: Callable[[], float] = time.
         raise RecordingError("the record stream ended before its set-up message")
     setup = pickle.loads(body)  # our own parent process wrote it
     path = Path(setup["path"])
-    try:
-        return _record(fd, out, setup, clock)
-    except (RecordingError, OSError, RuntimeError) as exc:
-        if is_no_space(exc):
-            raise DiskFullError(f"{path}: {exc}") from exc
-        raise
+    with watch_writer_errors() as writer_errors:
+        try:
+            return _record(fd, out, setup, clock)
+        except (RecordingError, OSError, RuntimeError) as exc:
+            if is_no_space(exc):
+                raise DiskFullError(f"{path}: {exc}") from exc
+            if writer_errors.no_space:  # the writer said why before it failed
+                raise DiskFullError(f"{path}: {exc} ({writer_errors.no_space})") from exc
+            raise
 
 
 def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], float]) -> int:
