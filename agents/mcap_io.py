@@ -738,7 +738,10 @@ def _iter_records(path: str | os.PathLike[str]) -> Iterator[Any]:
 
 
 def iter_messages(
-    path: str | os.PathLike[str], topics: Iterable[str] | None = None
+    path: str | os.PathLike[str],
+    topics: Iterable[str] | None = None,
+    *,
+    schemas: dict[str, dict[str, Any]] | None = None,
 ) -> Iterator[tuple[str, int, dict[str, Any]]]:
     """Yield ``(topic, log_time_ns, message)`` for every message of an MCAP JSON file.
 
@@ -748,12 +751,20 @@ def iter_messages(
     Args:
         path: the MCAP file.
         topics: only these topics (default: all).
+        schemas: filled, as the file is read, with the JSON Schema of every topic (as
+            :func:`read_schemas` gives them), so one pass reads both (and a damaged file is
+            reported once).
     """
     wanted = None if topics is None else set(topics)
     channels: dict[int, str] = {}
+    known: dict[int, dict[str, Any]] = {}
     for record in _iter_records(path):
+        if schemas is not None and isinstance(record, McapSchema):
+            known[record.id] = _json_schema(path, record)
         if isinstance(record, McapChannel):
             channels[record.id] = record.topic
+            if schemas is not None:
+                schemas[record.topic] = known.get(record.schema_id, {})
         elif isinstance(record, McapMessage):
             topic = channels.get(record.channel_id)
             if topic is None:
@@ -777,15 +788,24 @@ def read_schemas(path: str | os.PathLike[str]) -> dict[str, dict[str, Any]]:
     result: dict[str, dict[str, Any]] = {}
     for record in _iter_records(path):
         if isinstance(record, McapSchema):
-            if record.encoding != "jsonschema":
-                raise RecordingError(
-                    f"{path}: schema {record.name!r} has encoding {record.encoding!r}, "
-                    "expected 'jsonschema'"
-                )
-            schemas[record.id] = json.loads(record.data)
+            schemas[record.id] = _json_schema(path, record)
         elif isinstance(record, McapChannel):
             result[record.topic] = schemas.get(record.schema_id, {})
     return result
+
+
+def _json_schema(path: str | os.PathLike[str], record: McapSchema) -> dict[str, Any]:
+    """The JSON Schema a Schema record holds.
+
+    Raises:
+        RecordingError: the record is not a JSON Schema.
+    """
+    if record.encoding != "jsonschema":
+        raise RecordingError(
+            f"{path}: schema {record.name!r} has encoding {record.encoding!r}, "
+            "expected 'jsonschema'"
+        )
+    return json.loads(record.data)
 
 
 def recover(source: str | os.PathLike[str], destination: str | os.PathLike[str]) -> int:

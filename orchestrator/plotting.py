@@ -42,8 +42,10 @@ mpl.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from hilswarm.agents.errors import RecordingError
-from hilswarm.agents.mcap_io import iter_messages, read_schemas
+from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.agents.record_schema import entry_names_units
+from hilswarm.orchestrator.output_paths import check_output_folder
+from hilswarm.orchestrator.recover import check_mcap_magic
 from hilswarm.orchestrator.segments import existing_segments
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
@@ -168,18 +170,18 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
     A recording split into segments (``run.mcap``, ``run.1.mcap``, ...) is read whole.
 
     Raises:
-        RecordingError: the file does not exist.
+        RecordingError: the file does not exist, is a directory or is not an MCAP file.
     """
     path = Path(path)
-    if not path.is_file():
-        raise RecordingError(f"recording {path} does not exist")
+    check_mcap_magic(path)
     rows: dict[str, list[tuple[int, float, list[float | None]]]] = {}
     data = RecordingData()
     seen: set[tuple[str, int]] = set()
     schemas: dict[str, dict[str, Any]] = {}
     stopping = False  # the run's stop began: agents going safe from here on is its orderly end
     for segment in existing_segments(path):  # run.mcap, run.1.mcap, ... of a split recording
-        for topic, _, message in iter_messages(segment):
+        found: dict[str, dict[str, Any]] = {}
+        for topic, _, message in iter_messages(segment, schemas=found):
             if topic == "/experiment":
                 data.experiment = data.experiment or message
             elif topic.endswith("/status"):
@@ -200,7 +202,7 @@ def load_recording(path: str | os.PathLike[str]) -> RecordingData:
                 rows.setdefault(topic, []).append(
                     (k, _float(message.get("t")), list(message.get("values") or []))
                 )
-        schemas = {**read_schemas(segment), **schemas}
+        schemas = {**found, **schemas}
     data.events.sort(key=lambda event: event.t)
     graph_order = ((data.experiment or {}).get("graph") or {}).get("agents") or []
     rank = {name: i for i, name in enumerate(graph_order)}
@@ -234,7 +236,8 @@ def plot_recording(
 
     Args:
         path: the MCAP recording.
-        out_dir: folder for the PNG files (created if needed).
+        out_dir: folder for the PNG files (created when the first one is written: nothing
+            plottable leaves no folder; checked writable before anything is drawn).
         xy: the x and y position entries of ``y`` for the path plot, by index or name
             (checked: a bad one raises ``PlotError``); ``None``: entries 0 and 1, and no path
             plot when ``y`` has fewer.
@@ -243,7 +246,8 @@ def plot_recording(
         latency: also write ``latency.png``, where each tick's time went.
 
     Raises:
-        RecordingError: a missing file.
+        RecordingError: a missing file, a directory, a file that is not MCAP.
+        OutputPathError: ``out_dir`` cannot be written (a file, a read-only folder).
         PlotError: an unknown agent or field, or bad ``xy`` (the message lists the valid
             names).
     """
@@ -255,7 +259,7 @@ def plot_recording(
     if fields is not None:
         _select_fields(data, list(fields))
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_folder(out, what="the plots")
     title = (data.experiment or {}).get("name") or Path(path).stem
     written: list[Path] = []
     jobs = [
@@ -272,6 +276,7 @@ def plot_recording(
             logger.info("no data for %s; skipped", name)
             continue
         target = out / name
+        out.mkdir(parents=True, exist_ok=True)
         figure.savefig(target, dpi=_DPI)
         plt.close(figure)
         written.append(target)

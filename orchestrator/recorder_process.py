@@ -28,7 +28,8 @@ complete MCAP file with ``/experiment`` and the calibrations) and is sent the st
 definitions (its Header, Schema and Channel records so far) and then the unacknowledged
 batches, so the new segment continues where the last chunk on disk ended. The dead
 segment is rewritten as a complete file at the end (``hilswarm recover``'s reading). Only a
-failure that a restart cannot mend ends the recording: the disk is full (the process says
+failure that a restart cannot mend ends the recording: the disk is full (``ENOSPC`` or
+``EDQUOT`` only, :func:`~hilswarm.orchestrator.output_paths.is_no_space`; the process says
 ``error nospace``), or :data:`MAX_RESTARTS` restarts were used up. Then the owner's
 ``on_failure`` is called (``hilswarm run`` applies ``on_recording_failure``) and the records
 from there on are counted as lost (:meth:`RecorderProcess.report`).
@@ -47,13 +48,11 @@ properly (with what reached the pipe).
 from __future__ import annotations
 
 import contextlib
-import errno
 import fcntl
 import logging
 import os
 import pickle
 import select
-import shutil
 import signal
 import struct
 import subprocess
@@ -71,8 +70,9 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.agents.mcap_io import DEFAULT_COMPRESSION
 from hilswarm.orchestrator.cpu_priority import PriorityError, lower_own_priority
 from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.output_paths import is_no_space, watch_writer_errors
 from hilswarm.orchestrator.record_stream import definitions
-from hilswarm.orchestrator.recorder import DEFAULT_CHUNK_SIZE, Recorder, record_vehicles
+from hilswarm.orchestrator.recorder import Recorder, record_vehicles
 from hilswarm.orchestrator.run_summary import RecordingReport
 from hilswarm.orchestrator.segments import existing_segments, segment_path
 from hilswarm.orchestrator.stream_recorder import StreamRecorder
@@ -113,7 +113,6 @@ _READY = b"ready"
 _LIVE = b"live"
 _ACK = b"ack"
 _ERROR = b"error"
-_NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 def _enlarge_pipe(fd: int, size: int) -> int:
@@ -619,6 +618,10 @@ class RecorderProcess:
         The records still queued are handed over first (to a restarted process if need be).
         Idempotent. A process that does not finish in time is killed. Segments whose process
         died are rewritten as complete files; a staged recording never published is removed.
+
+        Raises:
+            RecordingError: the hidden file of a recording never published cannot be removed
+                (the process has ended all the same).
         """
         deadline = time.monotonic() + timeout_s
         with self._changed:
@@ -645,11 +648,28 @@ class RecorderProcess:
         if code != 0:
             logger.error("the recorder process of %s %s", self.path, _signal_text(code))
         if not self._published and self._staging is not None:
-            with contextlib.suppress(FileNotFoundError):
-                self._staging.unlink()
+            self._remove_staging()
         else:
             self._mend_dead_segments()
         return code
+
+    def _remove_staging(self) -> None:
+        """Remove the hidden file of a recording never published (if it was created).
+
+        Raises:
+            RecordingError: it exists and cannot be removed.
+        """
+        staging = self._staging
+        if staging is None or not (staging.exists() or staging.is_symlink()):
+            return  # never created (its folder may not even be writable: no unlink to fail)
+        try:
+            staging.unlink()
+        except FileNotFoundError:
+            return
+        except OSError as exc:
+            raise RecordingError(
+                f"cannot remove the unfinished recording {staging}: {exc.strerror or exc}"
+            ) from exc
 
     def _mend_dead_segments(self) -> None:
         """Rewrite the segments whose process died as complete MCAP files (best effort)."""
@@ -705,16 +725,6 @@ class DiskFullError(RecordingError):
     """The recording's disk (or quota) is full: a restarted recorder would fail too."""
 
 
-def _disk_full(path: Path, exc: BaseException) -> bool:
-    """True if ``exc`` (raised writing ``path``) comes from a full disk or quota."""
-    if isinstance(exc, OSError) and exc.errno in _NO_SPACE_ERRNOS:
-        return True
-    try:
-        return shutil.disk_usage(path.parent).free < 2 * DEFAULT_CHUNK_SIZE
-    except OSError:
-        return False
-
-
 def _say(out: IO[bytes], *words: bytes) -> None:
     out.write(b" ".join(words) + b"\n")
     out.flush()
@@ -738,12 +748,15 @@ def record_stream(fd: int, out: IO[bytes], *, clock: Callable[[], float] = time.
         raise RecordingError("the record stream ended before its set-up message")
     setup = pickle.loads(body)  # our own parent process wrote it
     path = Path(setup["path"])
-    try:
-        return _record(fd, out, setup, clock)
-    except (RecordingError, OSError, RuntimeError) as exc:
-        if _disk_full(path, exc):
-            raise DiskFullError(f"{path}: {exc}") from exc
-        raise
+    with watch_writer_errors() as writer_errors:
+        try:
+            return _record(fd, out, setup, clock)
+        except (RecordingError, OSError, RuntimeError) as exc:
+            if is_no_space(exc):
+                raise DiskFullError(f"{path}: {exc}") from exc
+            if writer_errors.no_space:  # the writer said why before it failed
+                raise DiskFullError(f"{path}: {exc} ({writer_errors.no_space})") from exc
+            raise
 
 
 def _record(fd: int, out: IO[bytes], setup: dict[str, Any], clock: Callable[[], float]) -> int:

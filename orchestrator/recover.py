@@ -11,17 +11,17 @@ MCAP reader and Foxglove open.
 from __future__ import annotations
 
 import os
-import shutil
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from hilswarm.agents import mcap_io
 from hilswarm.agents.errors import HilswarmError, RecordingError
-
-#: A write failure with less free space than this on the destination's disk is a full disk
-#: [bytes].
-MIN_FREE_BYTES = 1 << 20
+from hilswarm.orchestrator.output_paths import (
+    check_output_file,
+    is_no_space,
+    watch_writer_errors,
+)
 
 #: The 8 bytes every MCAP file starts with.
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -52,23 +52,25 @@ class NoSpaceError(HilswarmError, OSError):
     """The recovered file does not fit on its disk (``hilswarm recover`` exits 1)."""
 
 
-def _free_bytes(path: Path) -> int | None:
-    """Free space on the disk of ``path``'s folder [bytes] (``None``: unknown)."""
-    try:
-        return shutil.disk_usage(path.parent).free
-    except OSError:
-        return None
-
-
 def default_destination(source: Path) -> Path:
     """``run.mcap`` -> ``run.recovered.mcap`` beside it."""
     return source.with_name(f"{source.stem}.recovered{source.suffix or '.mcap'}")
 
 
-def check_mcap_magic(path: Path) -> None:
-    """Raise :class:`RecordingError` unless ``path`` exists and starts with the MCAP magic."""
+def check_mcap_magic(path: str | os.PathLike[str]) -> None:
+    """Raise :class:`RecordingError` unless ``path`` exists and starts with the MCAP magic.
+
+    The one check of "is this an MCAP file" for every command that reads a recording
+    (``recover``, ``plot``, ``replay``): the message says whether the file is missing, a
+    directory, or something else than MCAP.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise RecordingError(f"{path} is a directory, not an MCAP file")
+    if not path.exists():
+        raise RecordingError(f"{path} does not exist")
     if not path.is_file():
-        raise RecordingError(f"{path} does not exist or is not a file")
+        raise RecordingError(f"{path} is not a regular file")
     with path.open("rb") as handle:
         head = handle.read(len(MCAP_MAGIC))
     if head != MCAP_MAGIC:
@@ -99,7 +101,8 @@ def recover(
         RecordingError: ``source`` is missing or not MCAP, ``destination`` is ``source``,
             ``in_place`` is combined with a destination, or the destination cannot be written
             (nothing of the destination is left behind).
-        NoSpaceError: the destination's disk is full.
+        OutputPathError: the destination cannot be written (a folder, a read-only folder).
+        NoSpaceError: the destination's disk (or quota) is full (``ENOSPC``, ``EDQUOT``).
     """
     source = Path(source)
     check_mcap_magic(source)
@@ -111,17 +114,18 @@ def recover(
         target = Path(destination) if destination is not None else default_destination(source)
     if target.resolve() == source.resolve():
         raise RecordingError(f"the destination {target} is the source; use in_place to replace it")
+    check_output_file(target, what="the recovered recording")
     source_bytes = source.stat().st_size
-    try:
-        mcap_io.recover(source, target)  # removes what it wrote of target when it fails
-    except RecordingError as exc:
-        free = _free_bytes(target)
-        if free is not None and free < max(source_bytes, MIN_FREE_BYTES):
-            raise NoSpaceError(
-                f"no space left to write {target} ({free} bytes free, the recording has "
-                f"{source_bytes}): free some space or write elsewhere with -o"
-            ) from exc
-        raise
+    with watch_writer_errors() as writer_errors:
+        try:
+            mcap_io.recover(source, target)  # removes what it wrote of target when it fails
+        except RecordingError as exc:
+            if is_no_space(exc) or writer_errors.no_space:
+                raise NoSpaceError(
+                    f"no space left to write {target} (the recording has {source_bytes} "
+                    "bytes): free some space or write elsewhere with -o"
+                ) from exc
+            raise
     topics = Counter(topic for topic, _, _ in mcap_io.iter_messages(target))
     if in_place:
         os.replace(target, source)

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 from hilswarm.agents.control import ControlModel
 from hilswarm.agents.errors import HilswarmError, RecordingError
-from hilswarm.agents.mcap_io import iter_messages, read_schemas
+from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.agents.record_schema import entry_names_units
+from hilswarm.orchestrator.recover import check_mcap_magic
 
 logger = logging.getLogger(__name__)
 
@@ -116,14 +117,15 @@ def load_recording(path: str | os.PathLike[str]) -> Recording:
     """Read ``/experiment`` and every agent's ``y``, ``u`` and ``x_hat`` (values exactly).
 
     Raises:
-        ReplayError: no such file, or no ``/experiment`` message in it.
+        RecordingError: no such file, a directory, a file that is not MCAP.
+        ReplayError: no ``/experiment`` message in it.
     """
     path = Path(path)
-    if not path.is_file():
-        raise ReplayError(f"recording {path} does not exist")
+    check_mcap_magic(path)
     experiment: dict[str, Any] | None = None
     traces: dict[str, AgentTrace] = {}
-    for topic, _, message in iter_messages(path):
+    schemas: dict[str, dict[str, Any]] = {}
+    for topic, _, message in iter_messages(path, schemas=schemas):
         if topic == "/experiment":
             experiment = message
             continue
@@ -142,7 +144,7 @@ def load_recording(path: str | os.PathLike[str]) -> Recording:
     if experiment is None:
         raise ReplayError(f"{path} has no /experiment message: not a run recording")
     labels = {}
-    for topic, schema in read_schemas(path).items():
+    for topic, schema in schemas.items():
         if topic.endswith("/u"):
             names, units = entry_names_units(schema)
             labels[topic[1:-2]] = tuple(
@@ -293,14 +295,16 @@ def _max_abs(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def plot_replay(results: Sequence[AgentReplay], out_dir: str | os.PathLike[str]) -> list[Path]:
-    """One PNG per agent: recorded and replayed ``u`` against experiment time."""
+    """One PNG per agent: recorded and replayed ``u`` against experiment time.
+
+    ``out_dir`` is created when the first PNG is written (none: no folder).
+    """
     import matplotlib as mpl  # noqa: PLC0415 - only for the plots
 
     mpl.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     written = []
     for result in results:
         if not result.t:
@@ -330,6 +334,7 @@ def plot_replay(results: Sequence[AgentReplay], out_dir: str | os.PathLike[str])
         figure.suptitle(f"replay of {result.agent}: {verdict}")
         figure.tight_layout()
         target = out / f"replay_{result.agent}.png"
+        out.mkdir(parents=True, exist_ok=True)
         figure.savefig(target, dpi=110)
         plt.close(figure)
         written.append(target)

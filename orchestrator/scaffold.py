@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hilswarm.agents.errors import HilswarmError
+from hilswarm.agents.pins import PROFILES
+from hilswarm.orchestrator.output_paths import check_output_folder
 
 #: Folder of the ``*.tmpl`` files.
 TEMPLATE_DIR = Path(__file__).resolve().parent / "templates"
@@ -97,7 +99,13 @@ def _sorted_from_imports(*lines: str) -> str:
 
 
 def plan_vehicle(name: str, directory: Path, *, profile: str = "uno") -> list[GeneratedFile]:
-    """Files of ``hilswarm new vehicle NAME``: module, test and experiment file."""
+    """Files of ``hilswarm new vehicle NAME``: module, test and experiment file.
+
+    Raises:
+        ScaffoldError: a bad name, or ``profile`` is not a board profile (:data:`PROFILES`).
+    """
+    if profile not in PROFILES:
+        raise ScaffoldError(f"unknown board profile {profile!r} (known: {', '.join(PROFILES)})")
     names = scaffold_names(name)
     directory = Path(directory)
     module_file = f"{names.module}.py"
@@ -145,11 +153,15 @@ def plan_device(name: str, directory: Path, *, kind: str = "actuator") -> list[G
 
 
 def write_files(files: list[GeneratedFile]) -> list[Path]:
-    """Write every file, or none: refuses if any already exists.
+    """Write every file, or none: refuses if any already exists or cannot be written.
 
     Raises:
         ScaffoldError: the existing files are named; nothing is written.
+        OutputPathError: a folder of the files cannot be written into (a file in its place,
+            a read-only folder); nothing is written.
     """
+    for folder in dict.fromkeys(f.path.parent for f in files):
+        check_output_folder(folder, what="the new files")
     existing = [str(f.path) for f in files if f.path.exists()]
     if existing:
         raise ScaffoldError(

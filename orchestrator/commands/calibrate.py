@@ -13,6 +13,9 @@ strictly monotone curve (more duty, more u). The command
    file given with ``--merge`` so one file holds every input of a vehicle,
 5. optionally plots the measured points and the fitted curve to a PNG.
 
+Both output paths (``-o`` and ``--plot``) are checked writable before anything is written: a
+bad ``--plot`` leaves no calibration file behind (exit status 2).
+
 Example::
 
     hilswarm calibrate left.csv --input v_left --unit m/s --vehicle-id frisbee-01 \\
@@ -31,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from hilswarm.agents.calibration import Calibration, CalibrationCurve
 from hilswarm.agents.errors import CalibrationError
+from hilswarm.orchestrator.output_paths import check_output_file
 from matplotlib.figure import Figure
 
 HELP = "fit and plot a calibration table from measured pairs"
@@ -191,6 +195,9 @@ def run(args: argparse.Namespace) -> int:
     )
     error = check_curve(curve)
     date = args.date or dt.date.today().isoformat()
+    check_output_file(args.output, what="the calibration")  # both before anything is written
+    if args.plot is not None:
+        check_output_file(args.plot, what="the plot")
     calibration = merged_calibration(
         curve, args.output, merge=args.merge, vehicle_id=args.vehicle_id, date=date
     )

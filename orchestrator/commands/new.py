@@ -7,7 +7,8 @@
     hilswarm new device bumper --kind sensor [--dir DIR]
         -> DIR/bumper.py, DIR/test_bumper.py
 
-Existing files are never overwritten. See docs/scaffold.md.
+Existing files are never overwritten; an unknown ``--profile`` or a ``--dir`` that cannot be
+written is refused before anything is written (exit status 2). See docs/scaffold.md.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from hilswarm.agents.pins import PROFILES
 from hilswarm.orchestrator.scaffold import DEVICE_KINDS, plan_device, plan_vehicle, write_files
 
 HELP = "write a skeleton vehicle or device with its test and experiment file"
@@ -26,7 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("name", help="snake_case or CamelCase name, e.g. my_rover or MyRover")
     parser.add_argument("--dir", type=Path, default=Path(), help="folder to write into (.)")
     parser.add_argument(
-        "--profile", default="uno", help="board profile of a new vehicle (uno, duemilanove, fio)"
+        "--profile",
+        default="uno",
+        help=f"board profile of a new vehicle ({', '.join(PROFILES)})",
     )
     parser.add_argument(
         "--kind", choices=DEVICE_KINDS, default="actuator", help="kind of a new device"

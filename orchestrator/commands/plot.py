@@ -1,7 +1,9 @@
 """``hilswarm plot FILE --out DIR``: PNG plots of a run recording.
 
-Exit status: 0 plots written, 1 nothing plottable in the file, 2 bad input (missing file, an
-unknown ``--agent`` or ``--field``, a bad ``--xy``: the message lists the valid names).
+Exit status: 0 plots written, 1 nothing plottable in the file (no folder is left behind), 2
+bad input (a missing file, a directory or a file that is not MCAP, an ``--out`` that cannot be
+written -- checked before anything is drawn --, an unknown ``--agent`` or ``--field``, a bad
+``--xy``: the message lists the valid names).
 """
 
 from __future__ import annotations

@@ -6,8 +6,10 @@ Example::
     hilswarm replay out/lead_follow.mcap --set leader.kp=2.0
     hilswarm replay out/lead_follow.mcap --controller f1=my_module:MyFollower --json
 
-Exit status: 0 done (divergence is a result, not an error), 2 bad input (unknown agent,
-controller or parameter, not a run recording).
+Exit status: 0 done (divergence is a result, not an error), 1 nothing to replay (a recording
+with no controller steps, e.g. cut short before its first tick), 2 bad input (unknown agent,
+controller or parameter; a missing file, a directory, not an MCAP file, not a run recording;
+an ``--out`` that cannot be written, checked before anything is replayed).
 """
 
 from __future__ import annotations
@@ -75,11 +77,15 @@ def _params(items: list[str]) -> dict[str, dict[str, Any]]:
 def run(args: argparse.Namespace) -> int:
     """Replay and report; see the module docstring for the exit status."""
     from hilswarm.orchestrator import replay  # noqa: PLC0415 - numpy, user controllers
+    from hilswarm.orchestrator.output_paths import check_output_folder  # noqa: PLC0415
 
+    out = None if args.no_plot else args.out or args.file.with_name(f"{args.file.stem}_replay")
     try:
         controllers = _controllers(args.controller)
         params = _params(args.set)
         recording = replay.load_recording(args.file)
+        if out is not None:
+            check_output_folder(out, what="the replay plots")
         results = replay.replay(
             recording,
             controllers=controllers,
@@ -90,10 +96,10 @@ def run(args: argparse.Namespace) -> int:
     except (ValueError, replay.ReplayError) as exc:
         print(f"hilswarm replay: {exc}", file=sys.stderr)
         return 2
-    plots = []
-    if not args.no_plot:
-        out = args.out or args.file.with_name(f"{args.file.stem}_replay")
-        plots = replay.plot_replay(results, out)
+    if not results:
+        print(f"hilswarm replay: no ticks to replay in {args.file}", file=sys.stderr)
+        return 1
+    plots = [] if out is None else replay.plot_replay(results, out)
     for result in results:
         if args.json:
             print(json.dumps(result.as_json()))

@@ -20,7 +20,8 @@ every degradation with counts and ticks.
 
 ``--out`` never replaces an existing recording unless ``--force`` is given, and a run that
 fails before its first tick leaves no file: the recording is written under a hidden name and
-takes its name when the first tick is sent.
+takes its name when the first tick is sent. An ``--out`` that cannot be written (a folder, a
+file in the way of its folder, a read-only folder) is refused before anything starts (exit 2).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ from hilswarm.orchestrator.manager import (
     ManagerError,
 )
 from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
+from hilswarm.orchestrator.output_paths import check_output_file
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_registry import RunEntry, RunRecord
 from hilswarm.orchestrator.run_security import RunSecurity, is_loopback
@@ -67,7 +69,8 @@ exit status:
        recording is incomplete or split after a recorder failure (see the summary)
   1    failed: an agent lost with on_agent_loss = "stop", safe with on_agent_safe =
        "stop", safe from its first tick, no tick completed, or a start-up failure
-  2    bad input (experiment file, options, --out exists without --force)
+  2    bad input (experiment file, options, --out exists without --force or cannot be
+       written)
   130  interrupted (Ctrl-C)
 
 If the recorder process dies it is restarted and the recording continues in the next
@@ -233,6 +236,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"hilswarm run: {problem}", file=sys.stderr)
             return outcome.BAD_INPUT
     out = args.out or default_output(experiment, datetime.datetime.now())
+    check_output_file(out, what="the recording")  # before anything starts: exit 2
     taken = existing_segments(out)
     if taken and not args.force:
         names = ", ".join(str(path) for path in taken)
@@ -405,7 +409,10 @@ def _run(
         if mocap is not None:
             mocap.stop()
         manager.close()
-        recorder.close()
+        try:
+            recorder.close()
+        except (RecordingError, OSError) as exc:
+            error = error or f"closing the recording failed: {exc}"
         for signum, handler in previous.items():
             signal.signal(signum, handler)
     if summary is not None:
