@@ -45,27 +45,6 @@ def positive_int(text: str) -> int:
     return value
 
 
-def integer_in(low: int, high: int, *, hex_form: bool = False) -> Callable[[str], int]:
-    """A ``type=`` for an integer in ``low..high`` (decimal, or ``0x..`` with ``hex_form``)."""
-
-    def show(value: int) -> str:
-        return f"0x{value:X}" if hex_form else str(value)
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text, 0)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(
-                f"{text} is out of range; expected {show(low)}..{show(high)}"
-            )
-        return value
-
-    parse.__name__ = "integer"
-    return parse
-
-
 def endpoint(text: str) -> str:
     """A ``type=`` for a Zenoh endpoint (``--connect``, ``--listen``)."""
     from hilswarm.agents import bus  # noqa: PLC0415 - Zenoh only for commands that use the bus
