@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from hilswarm.orchestrator.run_registry import list_runs
-from swarm_harness import REPO, RunProcess, wait_for, write_toy_experiment
+from swarm_harness import REPO, RunProcess, read_recording, wait_for, write_toy_experiment
 
 pytestmark = pytest.mark.integration
 
@@ -90,9 +90,13 @@ def test_a_bus_that_cannot_be_joined_and_an_estop_reason(
     assert run.wait(60) == 3, run.output()  # an e-stop degrades the run
     output = run.output()
     assert "e-stop: e-stop" not in output, output
-    for name in ("a", "b", "c", "d"):  # each vehicle logs it
+    for name in ("a", "b", "c", "d"):  # each vehicle logs it, each agent records it
         assert f"vehicle '{name}' enters safe mode: e-stop\n" in output, output
-    # the summary lists the safe statuses that reached the manager before it stopped
+    recording = read_recording(run.out)
+    for name in ("a", "b", "c", "d"):
+        details = [m.get("detail", "") for m in recording.get(f"/{name}/status", [])]
+        assert "e-stop" in details, details
+        assert not any("e-stop: e-stop" in d for d in details), details
+    # (the summary lists only the safe statuses that reached the manager before it stopped)
     safe_lines = [line for line in output.splitlines() if "safe from tick" in line]
-    assert safe_lines, output
     assert all(line.endswith(": e-stop") for line in safe_lines), safe_lines
