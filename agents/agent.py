@@ -165,6 +165,13 @@ _MANAGER_GONE, _SIGNAL, _FAILED, _WAKE = range(4)
 _W_SET, _W_CONTROL, _W_ESTOP, _W_QUIT = range(4)
 
 
+def estop_reason(reason: str) -> str:
+    """What an e-stop is recorded and logged as: ``"e-stop: <reason>"``, or ``"e-stop"`` when
+    the command gave none (or only said "e-stop" again)."""
+    reason = reason.strip()
+    return f"e-stop: {reason}" if reason and reason.lower() != "e-stop" else "e-stop"
+
+
 class Agent:
     """One agent on the bus (see the module docstring).
 
@@ -677,7 +684,7 @@ class Agent:
             self._count_malformed("control")
             return
         if command is bus.ControlCommand.ESTOP:
-            self._estop_now(reason or "e-stop")
+            self._estop_now(estop_reason(reason))
         elif command is bus.ControlCommand.STOP:
             with self._engine_lock:
                 self.engine.running = False  # no tick after a stop command
@@ -687,11 +694,13 @@ class Agent:
             self._work.put((_W_CONTROL, command, reason))
 
     def _estop_now(self, reason: str) -> None:
-        """E-stop: the board's own path now, the state at once, the vehicle on the worker."""
+        """E-stop: the board's own path now, the state at once, the vehicle on the worker.
+
+        ``reason``: as :func:`estop_reason` words it."""
         hw = self.hardware
         if hw is not None and hw.board is not None:
             hw.board.request_estop()
-        self._transition("enter_safe", f"e-stop: {reason}")
+        self._transition("enter_safe", reason)
         self._work.put((_W_ESTOP, reason))
 
     # -- the worker thread -----------------------------------------------------------------
@@ -917,7 +926,7 @@ class Agent:
         hw = self.hardware
         if hw is not None:
             try:
-                hw.vehicle.enter_safe_mode(f"e-stop: {reason}")
+                hw.vehicle.enter_safe_mode(reason)
             except HilswarmError as exc:
                 logger.error("%s: enter_safe_mode failed: %s", self.config.name, exc)
             if hw.board is not None:
@@ -925,7 +934,7 @@ class Agent:
                     hw.board.estop()
                 except HilswarmError as exc:
                     logger.error("%s: board e-stop failed: %s", self.config.name, exc)
-        self._transition("enter_safe", f"e-stop: {reason}")
+        self._transition("enter_safe", reason)
 
     def _go_safe(self, reason: str, *, fault: bool = True) -> None:
         """Vehicle to safe mode (outputs to safe values, pushed to the board) and state safe.

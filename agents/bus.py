@@ -123,6 +123,10 @@ class BusKeyError(HilswarmError, ValueError):
     """A name cannot be used in a bus key (empty, or contains '/', '*', '$', '?', '#', space)."""
 
 
+class BusEndpointError(HilswarmError, ValueError):
+    """A string is not a Zenoh endpoint (``<protocol>/<address>``, e.g. ``tcp/127.0.0.1:7447``)."""
+
+
 def check_key_name(name: str, *, what: str) -> str:
     """Return ``name`` if it is usable as one chunk of a key, else raise :class:`BusKeyError`."""
     if not isinstance(name, str) or not _NAME_RE.match(name):
@@ -746,6 +750,44 @@ def decode_json(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 
 
+#: An endpoint, as the messages about a bad one show it.
+ENDPOINT_EXAMPLE = "tcp/127.0.0.1:7447"
+#: Zenoh's link protocols whose address is ``HOST:PORT``.
+IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+#: Every link protocol Zenoh knows (whether this build of Zenoh has it is told at open).
+ENDPOINT_PROTOCOLS = (*IP_PROTOCOLS, "unixsock-stream", "unixpipe", "serial", "vsock")
+#: ``<protocol>/<address>[?<metadata>][#<config>]``, Zenoh's endpoint syntax, without spaces.
+_ENDPOINT_RE = re.compile(
+    r"^(?P<protocol>[a-z][a-z0-9-]*)/(?P<address>[^?#\s]+)(\?[^#\s]*)?(#\S*)?$"
+)
+
+
+def check_endpoint(text: str) -> str:
+    """Return ``text`` if it is a Zenoh endpoint, else raise :class:`BusEndpointError`.
+
+    The one check of endpoints: :func:`session_config` applies it to every endpoint it is
+    given, and the CLI to its ``--connect``/``--listen`` options. Stricter than Zenoh's own
+    parser, which takes ``tcp/foo`` or ``xyz/1.2.3.4:5`` and fails only when the session opens.
+    """
+    match = _ENDPOINT_RE.match(text) if isinstance(text, str) else None
+    if match is None:
+        raise BusEndpointError(f"{text!r} is not a Zenoh endpoint (e.g. {ENDPOINT_EXAMPLE})")
+    protocol, address = match["protocol"], match["address"]
+    if protocol not in ENDPOINT_PROTOCOLS:
+        raise BusEndpointError(
+            f"{text!r} is not a Zenoh endpoint: unknown protocol {protocol!r}; expected one of "
+            f"{', '.join(ENDPOINT_PROTOCOLS)} (e.g. {ENDPOINT_EXAMPLE})"
+        )
+    if protocol in IP_PROTOCOLS:
+        host, _, port = address.rpartition(":")
+        if not host or not port.isdigit() or int(port) > 65535:
+            raise BusEndpointError(
+                f"{text!r} is not a Zenoh endpoint: {protocol}/ needs HOST:PORT with a port in "
+                f"0..65535 (e.g. {ENDPOINT_EXAMPLE})"
+            )
+    return text
+
+
 def loopback_endpoint(port: int = 0) -> str:
     """``tcp/127.0.0.1:<port>`` (port 0: a listening session binds a free port)."""
     if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port < 65536:
@@ -794,6 +836,9 @@ def session_config(
         listen: endpoints to listen on (port 0: a free port, see :func:`bound_endpoints`).
         connect: endpoints to connect to.
         security: credentials, TLS material and access control; ``None``: none.
+
+    Raises:
+        BusEndpointError: an endpoint that is not one (:func:`check_endpoint`).
     """
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
@@ -805,8 +850,10 @@ def session_config(
         config.insert_json5(
             f"transport/link/tx/queue/size/{priority}", str(TICK_PATH_QUEUE_BATCHES)
         )
-    config.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    for key, endpoints in (("listen", list(listen)), ("connect", list(connect))):
+        for endpoint in endpoints:
+            check_endpoint(endpoint)
+        config.insert_json5(f"{key}/endpoints", json.dumps(endpoints))
     if mode == "router":  # lets bound_endpoints() read the ports it bound (local reads only)
         config.insert_json5("adminspace", '{"enabled": true, "permissions": {"read": true}}')
     if security is None:
@@ -932,4 +979,10 @@ def _explain_open_error(config: zenoh.Config, raw: str) -> str:
         return f"cannot listen on {', '.join(listen)}: address already in use"
     if "listen" in raw.lower() or "bind" in raw.lower():
         return f"cannot listen on {', '.join(listen)} (address not available here?)"
-    return "cannot open the bus session (run with -v for Zenoh's message)"
+    where = ", ".join([*listen, *connect])
+    return f"cannot open the bus session on {where}: {_zenoh_reason(raw)}"
+
+
+def _zenoh_reason(raw: str) -> str:
+    """Zenoh's error text without the Rust source locations (``... at /x/y.rs:62.``)."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", raw).strip() or "unknown Zenoh error"

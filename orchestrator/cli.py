@@ -7,22 +7,33 @@ the command being run, so ``hilswarm check`` starts fast and never imports Zenoh
 Exit status: 0 success, 1 the run failed, 2 bad input (file, key or value), 130 interrupted,
 141 (128 + SIGPIPE, as a shell tool killed by it) the reader of the output went away
 (``hilswarm graph x.toml --json | head -1``): the rest of the output is dropped, quietly.
+
+Ctrl-C at any moment :func:`main` runs -- also while a command's modules (Zenoh, numpy, ...)
+are still being imported, the first second or so -- ends with one line and status 130;
+commands that handle SIGINT themselves (``run``: agents to safe mode, the recording closed)
+take over once they have set up. (Only the interpreter's own start-up, before this module is
+imported, some 30 ms, is out of its reach.)
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
+import signal
 import sys
-from collections.abc import Sequence
-from types import ModuleType
+import threading
+from collections.abc import Iterator, Sequence
+from types import FrameType, ModuleType
 
 from hilswarm.agents.errors import HilswarmError
 
 #: Exit status when the reader of the output closed its end of the pipe (128 + SIGPIPE).
 BROKEN_PIPE = 141
+#: Exit status after Ctrl-C (128 + SIGINT).
+INTERRUPTED = 130
 
 #: command -> (module, one-line help). Order is the order shown by --help.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -59,6 +70,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description="Hardware-in-the-loop control of swarms of small Arduino vehicles.",
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    parser.add_argument(
+        "--version",
+        action=_VersionAction,
+        help="print hilswarm's version and the board wire protocol versions it speaks",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name, (_, help_text) in COMMANDS.items():
@@ -68,35 +84,94 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def version_text() -> str:
+    """``hilswarm 0.1.0 (board wire protocol 2; boards speaking 1, 2 accepted)``."""
+    from importlib.metadata import PackageNotFoundError, version  # noqa: PLC0415 - --version
+
+    from hilswarm.agents.link.board import (  # noqa: PLC0415 - --version only
+        PROTOCOL_VERSION,
+        SUPPORTED_PROTOCOL_VERSIONS,
+    )
+
+    try:
+        package = version("hilswarm")
+    except PackageNotFoundError:
+        package = "unknown (not installed)"
+    accepted = ", ".join(str(v) for v in sorted(SUPPORTED_PROTOCOL_VERSIONS))
+    return (
+        f"hilswarm {package} (board wire protocol {PROTOCOL_VERSION}; "
+        f"boards speaking {accepted} accepted)"
+    )
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the text is made only when asked for (no import at every start)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_args: object, **_kwargs: object) -> None:
+        print(version_text())
+        parser.exit()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``hilswarm`` console script."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # anywhere: while importing a command's modules, or running it
+        print("hilswarm: interrupted", file=sys.stderr)
+        return INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args_list = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in args_list if not a.startswith("-")), None)
     if command not in COMMANDS:
         command = None
-    try:
-        parser = build_parser(command)
-    except ImportError as exc:
-        print(f"hilswarm: command {command!r} is not available: {exc}", file=sys.stderr)
-        return 1
-    args = parser.parse_args(args_list)
-    logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose, 2),
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    with _exit_on_interrupt():
+        try:
+            parser = build_parser(command)
+        except ImportError as exc:
+            print(f"hilswarm: command {command!r} is not available: {exc}", file=sys.stderr)
+            return 1
+        args = parser.parse_args(args_list)
+        logging.basicConfig(
+            level=logging.WARNING - 10 * min(args.verbose, 2),
+            format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+        )
     try:
         code = int(_command_module(args.command).run(args) or 0)
         sys.stdout.flush()  # here, not at exit: a closed pipe is handled below
     except BrokenPipeError:
         _drop_output()
         return BROKEN_PIPE
-    except KeyboardInterrupt:
-        print("hilswarm: interrupted", file=sys.stderr)
-        return 130
     except HilswarmError as exc:
         print(f"hilswarm {args.command}: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ValueError | TypeError | LookupError) else 1
     return code
+
+
+def _exit_at_once(_signum: int, _frame: FrameType | None) -> None:
+    os.write(2, b"hilswarm: interrupted\n")
+    os._exit(INTERRUPTED)
+
+
+@contextlib.contextmanager
+def _exit_on_interrupt() -> Iterator[None]:
+    """While a command is set up (its modules imported, its arguments parsed), Ctrl-C exits at
+    once: nothing has started yet, so nothing needs undoing. Not as a ``KeyboardInterrupt``:
+    raised inside the import machinery, one can be swallowed ("Exception ignored in
+    ... _get_module_lock") and the Ctrl-C lost. Python's own handler is back for the command.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set from the main thread
+        return
+    previous = signal.signal(signal.SIGINT, _exit_at_once)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _drop_output() -> None:

@@ -498,10 +498,15 @@ class _Loader:
             return None
 
     def _too_many(self, key: str, count: int) -> None:
+        limit = (
+            "the most accepted without an explicit limit"
+            if self.max_agents == DEFAULT_MAX_AGENTS
+            else "the limit set by --max-agents"
+        )
         self.problem(
             key,
-            f"{count} agents is more than {self.max_agents}, the most accepted without an "
-            f"explicit limit (one process per agent); pass --max-agents {count} to allow it",
+            f"{count} agents is more than {self.max_agents}, {limit} (one process per agent); "
+            f"pass --max-agents {count} to allow it",
         )
 
     # -- tables --------------------------------------------------------------------------------

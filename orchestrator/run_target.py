@@ -15,6 +15,7 @@ from pathlib import Path
 
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import Credentials
+from hilswarm.orchestrator.cli_types import endpoint
 from hilswarm.orchestrator.run_registry import RunEntry, RunLookupError, find_run, run_folder
 
 
@@ -55,6 +56,7 @@ def add_target_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--connect",
         action="append",
+        type=endpoint,
         default=[],
         metavar="ENDPOINT",
         help="bus endpoint (default: the run's own, from the run registry)",

@@ -17,7 +17,9 @@
 
 :meth:`MocapClient.run` blocks, calling ``on_frame`` with each :class:`Frame` in the
 *system's* convention (mapped into the world frame by the caller, :mod:`.frames`), until
-:meth:`MocapClient.stop` or the server is lost (:class:`MocapServerLost`).
+:meth:`MocapClient.stop` or the server is lost (:class:`MocapServerLost`). Every client first
+looks the server's name up (:func:`check_resolves`): neither library tells a name that does not
+resolve from a refused or silent server.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 import subprocess
 import sys
 import threading
@@ -95,6 +98,40 @@ class MocapClient(Protocol):
         """Make :meth:`run` return (thread-safe)."""
 
 
+def host_of(address: str) -> str:
+    """The host of ``host``, ``host:port`` or ``[v6 address]:port``."""
+    if address.startswith("["):
+        return address[1:].partition("]")[0]
+    if address.count(":") == 1:  # more colons: an IPv6 address without a port
+        return address.partition(":")[0]
+    return address
+
+
+def check_resolves(host: str, where: str, *, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+    """Raise :class:`MocapConnectionError` saying so when ``host`` is a name that does not
+    resolve (``socket.gaierror``). A lookup still running after ``timeout_s``, or another
+    error, is left to the client (its own connection bound then applies).
+    """
+    failed: list[socket.gaierror] = []
+
+    def look_up() -> None:
+        try:
+            socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+        except socket.gaierror as exc:
+            failed.append(exc)
+        except (OSError, UnicodeError):  # not a name-resolution failure: the client reports it
+            return
+
+    lookup = threading.Thread(target=look_up, name="mocap-resolve", daemon=True)
+    lookup.start()
+    lookup.join(timeout_s)
+    if failed:
+        raise MocapConnectionError(
+            f"cannot connect to {where}: the host name {host!r} does not resolve "
+            f"(name resolution failed: {failed[0].strerror or failed[0]})"
+        )
+
+
 def body_names(xml: bytes | str) -> tuple[tuple[str, ...], float | None]:
     """Rigid body names and frame rate [Hz] from a QTM ``GetParameters General 6D`` answer."""
     text = xml.decode() if isinstance(xml, bytes) else xml
@@ -147,6 +184,7 @@ class QualisysClient:
 
     def run(self, on_frame: Callable[[Frame], None], on_ready: Callable[[], None]) -> None:
         """Connect, read the body list, stream 6D frames until stopped or lost."""
+        check_resolves(self.host, f"QTM at {self.host}:{self.port}", timeout_s=self.timeout_s)
         asyncio.run(self._run(on_frame, on_ready))
 
     async def _run(self, on_frame: Callable[[Frame], None], on_ready: Callable[[], None]) -> None:
@@ -268,10 +306,16 @@ class MotionCaptureClient:
 
         Raises:
             MocapConnectionError: no connection within :attr:`connect_timeout_s` (for VRPN: no
-                body, as VRPN reports no connection state), or the library refused.
+                body, as VRPN reports no connection state), or the library refused, or the
+                host's name does not resolve.
             MocapServerLost: the worker failed, or no frame (VRPN: no frame with a body) came
                 for :data:`SILENCE_FRAMES` frame periods.
         """
+        check_resolves(
+            host_of(self.host),
+            f"{self.system} at {self.host}",
+            timeout_s=self.connect_timeout_s,
+        )
         worker = subprocess.Popen(
             [sys.executable, "-m", "hilswarm.agents.mocap.mc_worker", self.system, self.host],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,

@@ -33,6 +33,55 @@ class RadioSetupError(HilswarmError, ConnectionError):
     """The coordinator or a remote radio could not be reached or configured."""
 
 
+class RadioSettingError(HilswarmError, ValueError):
+    """A radio setting (channel, PAN id, baud rate, API mode) outside what the radios take."""
+
+
+#: 802.15.4 channels of the XBee radios (``CH``), first and last.
+CHANNELS = (0x0B, 0x1A)
+#: PAN ids (``ID``), first and last.
+PAN_IDS = (0x0000, 0xFFFF)
+#: API modes of the coordinator (``AP``).
+API_MODES = (1, 2)
+
+
+def check_channel(channel: int) -> int:
+    """``channel`` if the radios have it, else :class:`RadioSettingError` with the range."""
+    low, high = CHANNELS
+    if not low <= channel <= high:
+        raise RadioSettingError(
+            f"channel {channel:#x} is out of range; expected 0x{low:02X}-0x{high:02X} "
+            f"(802.15.4 channels {low}-{high})"
+        )
+    return channel
+
+
+def check_pan_id(pan_id: int) -> int:
+    """``pan_id`` if it is a PAN id, else :class:`RadioSettingError` with the range."""
+    low, high = PAN_IDS
+    if not low <= pan_id <= high:
+        raise RadioSettingError(
+            f"PAN id {pan_id:#x} is out of range; expected 0x{low:04X}-0x{high:04X}"
+        )
+    return pan_id
+
+
+def check_baud(baud: int) -> int:
+    """``baud`` if it is a standard XBee UART rate, else :class:`RadioSettingError`."""
+    try:
+        baud_code(baud)
+    except ValueError as exc:
+        raise RadioSettingError(str(exc)) from None
+    return baud
+
+
+def check_api_mode(api_mode: int) -> int:
+    """``api_mode`` if it is 1 or 2, else :class:`RadioSettingError`."""
+    if api_mode not in API_MODES:
+        raise RadioSettingError(f"API mode must be 1 or 2, got {api_mode}")
+    return api_mode
+
+
 @dataclass(frozen=True)
 class Node:
     """One radio found by node discovery.
@@ -113,19 +162,22 @@ def setup(
 ) -> None:
     """Configure the robots' radios ``remotes`` and then the coordinator at ``port``.
 
+    Every setting is checked before any radio is touched (a bad coordinator rate found after
+    the robots were switched would leave them on another channel than the coordinator).
+
     Raises:
+        RadioSettingError: a setting out of range (nothing was changed).
         RadioSetupError: a radio does not answer or refuses a setting.
     """
     from digi.xbee.devices import RemoteXBeeDevice  # noqa: PLC0415
     from digi.xbee.exception import XBeeException  # noqa: PLC0415
     from digi.xbee.models.address import XBee64BitAddress  # noqa: PLC0415
 
-    if api_mode not in (1, 2):
-        raise RadioSetupError(f"api_mode must be 1 or 2, got {api_mode}")
-    if not 0x0B <= channel <= 0x1A:
-        raise RadioSetupError(f"channel {channel:#x} is not an 802.15.4 channel (0x0B-0x1A)")
-    if not 0 <= pan_id <= 0xFFFF:
-        raise RadioSetupError(f"PAN id {pan_id:#x} is not 0-0xFFFF")
+    check_api_mode(api_mode)
+    check_channel(channel)
+    check_pan_id(pan_id)
+    for rate in (baud, robot_baud, new_baud or baud):
+        check_baud(rate)
     progress(f"asking the radio at {port} ({baud} baud)...")  # a silent port takes ~8 s
     device = _open(port, baud)
     try:

@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 
+from hilswarm.orchestrator.cli_types import positive_int
 from hilswarm.orchestrator.experiment import DEFAULT_MAX_AGENTS, parse_experiment
 from hilswarm.orchestrator.graph_facts import graph_facts
 
@@ -21,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--max-agents",
-        type=int,
+        type=positive_int,
         default=DEFAULT_MAX_AGENTS,
         metavar="N",
         help=f"accept up to N agents (default {DEFAULT_MAX_AGENTS})",

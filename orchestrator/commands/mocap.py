@@ -30,9 +30,12 @@ from hilswarm.agents.mocap.probe import DEFAULT_PROBE_S, ProbeResult, probe
 from hilswarm.agents.mocap.qtm_sim import QtmSimulator
 from hilswarm.agents.mocap.sim_process import sim_settings
 from hilswarm.agents.registry import resolve_vehicle
+from hilswarm.orchestrator.cli_types import positive_number
 from hilswarm.orchestrator.experiment import Experiment, load_experiment, mocap_settings
 
 HELP = "list the bodies a mocap system sees, with rate and position"
+#: Longest ``--seconds`` [s].
+MAX_WATCH_S = 60.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,9 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--up-axis", choices=("y", "z"), default=None, help="override up axis")
     parser.add_argument(
         "--seconds",
-        type=float,
+        type=positive_number(most=MAX_WATCH_S),
         default=DEFAULT_PROBE_S,
-        help=f"how long to watch the stream [s] (default {DEFAULT_PROBE_S:g})",
+        help=f"how long to watch the stream [s] (default {DEFAULT_PROBE_S:g}, at most "
+        f"{MAX_WATCH_S:g})",
     )
 
 
@@ -113,9 +117,6 @@ def run(args: argparse.Namespace) -> int:
         settings, experiment = _settings(args)
     except _BadInputError as exc:
         print(f"hilswarm mocap: {exc}", file=sys.stderr)
-        return 2
-    if not 0 < args.seconds <= 60:
-        print("hilswarm mocap: --seconds must be in (0, 60]", file=sys.stderr)
         return 2
     where = f"{settings.system} at {settings.host}" + (f":{settings.port}" if settings.port else "")
     print(f"watching {where} for {args.seconds:g} s ...", flush=True)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from hilswarm.orchestrator.cli_types import positive_int
 from hilswarm.orchestrator.experiment import DEFAULT_MAX_AGENTS, parse_link_overrides
 
 
@@ -23,7 +24,7 @@ def add_override_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--max-agents",
-        type=int,
+        type=positive_int,
         default=DEFAULT_MAX_AGENTS,
         metavar="N",
         help=f"accept up to N agents (default {DEFAULT_MAX_AGENTS}; one process per agent)",

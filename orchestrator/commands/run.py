@@ -40,6 +40,7 @@ from hilswarm.agents.errors import RecordingError
 from hilswarm.orchestrator import outcome
 from hilswarm.orchestrator.bus_access import GATEWAY, MOCAP, VIEWER
 from hilswarm.orchestrator.checks import check_file
+from hilswarm.orchestrator.cli_types import endpoint, positive_float
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 from hilswarm.orchestrator.experiment import Experiment, load_experiment
 from hilswarm.orchestrator.gateway_launcher import GatewayLauncher, GatewayProcessError
@@ -101,6 +102,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--connect",
         action="append",
+        type=endpoint,
         default=[],
         metavar="ENDPOINT",
         help="join an existing Zenoh router (e.g. tcp/127.0.0.1:7447) instead of opening one "
@@ -115,6 +117,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--listen",
         action="append",
+        type=endpoint,
         default=[],
         metavar="ENDPOINT",
         help="also listen here for agents on other machines, e.g. tls/0.0.0.0:7447 "
@@ -141,14 +144,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--start-timeout",
-        type=float,
+        type=positive_float,
         default=DEFAULT_START_TIMEOUT_S,
         metavar="SECONDS",
         help="bound on waiting for every agent to be ready [s]",
     )
     parser.add_argument(
         "--answer-timeout",
-        type=float,
+        type=positive_float,
         default=DEFAULT_ANSWER_TIMEOUT_S,
         metavar="SECONDS",
         help="lockstep: an agent silent this long on one tick is lost [s]",

@@ -22,6 +22,7 @@ from typing import Any
 
 from hilswarm.agents import bus
 from hilswarm.orchestrator.bus_access import OPERATOR
+from hilswarm.orchestrator.cli_types import positive_float
 from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "change controller parameters of a running agent"
@@ -33,7 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("agent", help="agent name")
     parser.add_argument("assignments", nargs="+", metavar="KEY=VALUE", help="TOML values")
     add_target_arguments(parser)
-    parser.add_argument("--timeout", type=float, default=5.0, help="bound on the answer [s]")
+    parser.add_argument(
+        "--timeout", type=positive_float, default=5.0, help="bound on the answer [s]"
+    )
 
 
 def parse_assignments(items: list[str]) -> dict[str, Any]:

@@ -21,6 +21,7 @@ import threading
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.orchestrator.bus_access import OPERATOR
+from hilswarm.orchestrator.cli_types import positive_float
 from hilswarm.orchestrator.run_target import add_target_arguments, target_from_args
 
 HELP = "bring every agent of a running experiment to safe mode and stop"
@@ -35,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--resume", action="store_true", help="resume ticking")
     parser.add_argument("--reason", default="", help="recorded with the command")
     add_target_arguments(parser)
-    parser.add_argument("--timeout", type=float, default=15.0, help="bound on waiting [s]")
+    parser.add_argument("--timeout", type=positive_float, default=15.0, help="bound on waiting [s]")
 
 
 def run(args: argparse.Namespace) -> int:

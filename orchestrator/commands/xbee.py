@@ -17,12 +17,31 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
+
+from hilswarm.orchestrator.cli_types import positive_float
 
 HELP = "XBee radios: node discovery (scan) and configuration (setup)"
 
 
-def _int(text: str) -> int:
-    return int(text, 0)
+def _setting(check_name: str) -> Callable[[str], int]:
+    """A ``type=`` for a radio setting (decimal or ``0x..``), checked up front by
+    :mod:`hilswarm.agents.xbee.radio_setup`'s own ``check_*`` rule (the range in the message)."""
+
+    def parse(text: str) -> int:
+        from hilswarm.agents.xbee import radio_setup  # noqa: PLC0415 - xbee only
+
+        try:
+            value = int(text, 0)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        try:
+            return getattr(radio_setup, check_name)(value)
+        except radio_setup.RadioSettingError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    parse.__name__ = "integer"
+    return parse
 
 
 def _address(text: str) -> int:
@@ -34,6 +53,9 @@ def _address(text: str) -> int:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
+_baud = _setting("check_baud")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Arguments of ``hilswarm xbee``."""
     sub = parser.add_subparsers(dest="action", metavar="ACTION")
@@ -42,13 +64,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     setup = sub.add_parser("setup", help="configure the robots' radios and the coordinator")
     for p in (scan, setup):
         p.add_argument("--port", required=True, help="the coordinator's serial port")
-        p.add_argument("--baud", type=int, default=115200, help="its current baud rate")
-    scan.add_argument("--timeout", type=float, default=10.0, help="discovery bound [s]")
+        p.add_argument("--baud", type=_baud, default=115200, help="its current baud rate")
+    scan.add_argument("--timeout", type=positive_float, default=10.0, help="discovery bound [s]")
     setup.add_argument("--api-mode", type=int, choices=(1, 2), default=1)
-    setup.add_argument("--pan-id", type=_int, default=0x3332, help="PAN id (default 0x3332)")
-    setup.add_argument("--channel", type=_int, default=0x0C, help="channel 0x0B-0x1A")
-    setup.add_argument("--new-baud", type=int, default=None, help="coordinator's new baud")
-    setup.add_argument("--robot-baud", type=int, default=115200, help="robots' UART baud")
+    setup.add_argument(
+        "--pan-id", type=_setting("check_pan_id"), default=0x3332, help="PAN id 0x0000-0xFFFF"
+    )
+    setup.add_argument(
+        "--channel", type=_setting("check_channel"), default=0x0C, help="channel 0x0B-0x1A"
+    )
+    setup.add_argument("--new-baud", type=_baud, default=None, help="coordinator's new baud")
+    setup.add_argument("--robot-baud", type=_baud, default=115200, help="robots' UART baud")
     setup.add_argument(
         "--remote", type=_address, action="append", default=[], help="a robot radio's address"
     )

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 from hilswarm.agents.link.sim_board import SimBoard
+from hilswarm.agents.xbee import radio_setup
 from hilswarm.agents.xbee.api_frames import FrameFamily
 from hilswarm.agents.xbee.sim_coordinator import SimCoordinator, SimRemote
 from hilswarm.agents.xbee.sim_robot import WireServerUart
@@ -50,6 +51,21 @@ def test_setup_configures_the_robots_then_the_coordinator(
         assert remote.params["AP"] == b"\x00"  # transparent: the firmware needs no new wiring
         assert remote.params["DL"] == coordinator.params["SL"]
     assert coordinator.params["AP"] == b"\x02" and coordinator.params["CH"] == b"\x0f"
+
+
+def test_setup_checks_every_setting_before_any_radio(coordinator: SimCoordinator) -> None:
+    """A bad coordinator rate is refused before the robots are switched (they would be left on
+    a channel the coordinator is not on)."""
+    before = {a: dict(r.params) for a, r in coordinator.remotes.items()}
+    own = dict(coordinator.params)
+    with pytest.raises(radio_setup.RadioSettingError, match="1234 baud is not a standard"):
+        radio_setup.setup(
+            coordinator.url, channel=0x0F, new_baud=1234, remotes=ADDRS, progress=lambda _: None
+        )
+    with pytest.raises(radio_setup.RadioSettingError, match="channel 0x40 is out of range"):
+        radio_setup.setup(coordinator.url, channel=0x40, remotes=ADDRS, progress=lambda _: None)
+    assert {a: dict(r.params) for a, r in coordinator.remotes.items()} == before
+    assert dict(coordinator.params) == own
 
 
 def test_setup_reports_a_silent_robot_radio(
