@@ -16,7 +16,13 @@ from pathlib import Path
 from hilswarm.agents import bus
 from hilswarm.agents.credentials import Credentials
 from hilswarm.orchestrator.cli_types import endpoint
-from hilswarm.orchestrator.run_registry import RunEntry, RunLookupError, find_run, run_folder
+from hilswarm.orchestrator.run_registry import (
+    RunEntry,
+    RunLookupError,
+    find_run,
+    list_runs,
+    run_folder,
+)
 
 
 @dataclass(frozen=True)
@@ -38,6 +44,20 @@ class RunTarget:
     def describe(self) -> str:
         """``"lead_follow (run 3f9c1a2b)"``."""
         return f"{self.keys.experiment} (run {self.keys.run_id})"
+
+    def ended(self) -> str:
+        """Why the run is no longer there to talk to, read afresh from the run registry:
+        ``"has stopped"`` (its entry is gone) or ``"is stopping"``; ``""`` while it runs, or
+        when the registry cannot tell (a target named by a credentials file)."""
+        if self.entry is None:
+            return ""
+        try:
+            now = {e.run_id: e for e in list_runs()}.get(self.entry.run_id)
+        except OSError:
+            return ""
+        if now is None:
+            return "has stopped"
+        return "is stopping" if now.state == "stopping" else ""
 
 
 def add_target_arguments(parser: argparse.ArgumentParser) -> None:

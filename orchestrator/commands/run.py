@@ -27,6 +27,7 @@ file in the way of its folder, a read-only folder) is refused before anything st
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import secrets
 import signal
@@ -405,6 +406,8 @@ def _run(
         error = str(exc)
     finally:
         record.entry.state = "stopping"
+        with contextlib.suppress(OSError):  # `hilswarm stop`/`set` then say it is ending
+            record.write()
         display.finish()
         launcher.stop(told=summary is not None)  # a summary: the manager stopped the agents
         if gateway is not None:

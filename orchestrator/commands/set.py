@@ -77,7 +77,15 @@ def run(args: argparse.Namespace) -> int:
     key = target.keys.set(args.agent)
     endpoints = target.endpoints
     payload = bus.encode_json({"params": params})
-    with bus.open_session(bus.client_config(endpoints, security=target.security)) as session:
+    try:
+        session = bus.open_session(bus.client_config(endpoints, security=target.security))
+    except bus.BusConnectionError:
+        ended = target.ended()
+        if not ended:
+            raise
+        print(f"hilswarm set: {target.describe()} {ended}: nothing to set", file=sys.stderr)
+        return 2
+    with session:
         replies = session.get(key, payload=payload, timeout=args.timeout)
         for reply in replies:
             if reply.ok is not None:
@@ -87,6 +95,10 @@ def run(args: argparse.Namespace) -> int:
             error = bus.decode_json(reply.err.payload.to_bytes()) if reply.err else {}
             print(f"hilswarm set: {args.agent} refused: {error.get('error')}", file=sys.stderr)
             return 2
+    ended = target.ended()
+    if ended:
+        print(f"hilswarm set: {target.describe()} {ended}: nothing was set", file=sys.stderr)
+        return 2
     print(
         f"hilswarm set: no answer from agent {args.agent!r} of experiment {args.experiment!r} "
         f"on {', '.join(endpoints)} within {args.timeout} s",

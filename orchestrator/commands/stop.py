@@ -67,13 +67,23 @@ def run(args: argparse.Namespace) -> int:
             matched.set()
 
     config = bus.client_config(target.endpoints, security=target.security)
-    with bus.open_session(config) as session:
+    try:
+        session = bus.open_session(config)
+    except bus.BusConnectionError:
+        ended = target.ended()
+        if not ended:
+            raise
+        return _ended(args.experiment, target.describe(), ended, command)
+    with session:
         status_sub = session.declare_subscriber(keys.manager_status, on_manager_status)
         publisher = session.declare_publisher(keys.manager_request, **bus.TICK_PATH_QOS)
         listener = publisher.declare_matching_listener(on_match)
         if bus.has_subscribers(publisher):
             matched.set()
         if not matched.wait(args.timeout):
+            ended = target.ended()
+            if ended:
+                return _ended(args.experiment, target.describe(), ended, command)
             print(
                 f"hilswarm stop: {target.describe()} does not listen on "
                 f"{', '.join(target.endpoints)}",
@@ -90,3 +100,14 @@ def run(args: argparse.Namespace) -> int:
         del status_sub, listener
     print(f"{args.experiment}: stopped")
     return 0
+
+
+def _ended(experiment: str, described: str, ended: str, command: bus.ControlCommand) -> int:
+    """The run ended (or is ending) before the command reached it: for stop and e-stop that is
+    what was asked (its agents are safe or going safe: exit 0); pause and resume come too late
+    (exit 2, as for a run that is not running)."""
+    if command in (bus.ControlCommand.STOP, bus.ControlCommand.ESTOP):
+        print(f"{experiment}: {described} {ended} already")
+        return 0
+    print(f"hilswarm stop: {described} {ended}: nothing to {command.value}", file=sys.stderr)
+    return 2
