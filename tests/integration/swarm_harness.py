@@ -44,6 +44,26 @@ def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None
         time.sleep(0.02)
 
 
+def finish_in_group(
+    command: list[str], *, cwd: Path, timeout_s: float, env: dict[str, str] | None = None
+) -> tuple[int, str]:
+    """Run ``command`` in a process group of its own, killed (group and all) after
+    ``timeout_s``, which fails the test; returns its exit status and output (stderr merged)."""
+    process = subprocess.Popen(
+        command, cwd=cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+        text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        output, _ = process.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        output, _ = process.communicate(timeout=10)
+        raise AssertionError(
+            f"{' '.join(command)} did not finish in {timeout_s} s:\n{output}"
+        ) from None
+    return process.returncode, output
+
+
 def child_pids(pid: int) -> list[int]:
     """Direct children of ``pid`` (from /proc)."""
     children: list[int] = []

@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -18,7 +17,7 @@ import pytest
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.link.wire_server import SocketWireServer
 from hilswarm.agents.mcap_io import McapJsonWriter, iter_messages
-from swarm_harness import write_toy_experiment
+from swarm_harness import finish_in_group, write_toy_experiment
 
 HERE = Path(__file__).resolve().parent
 GRAPHS = HERE.parents[1] / "graphs"
@@ -29,17 +28,7 @@ ENV = {**os.environ, "PYTHONPATH": f"{HERE}{os.pathsep}{os.environ.get('PYTHONPA
 
 def finish(command: list[str], cwd: Path) -> tuple[int, str]:
     """Run ``command`` in its own process group (killed after RUN_TIMEOUT_S); status, output."""
-    process = subprocess.Popen(
-        command, cwd=cwd, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True, start_new_session=True,
-    )  # fmt: skip
-    try:
-        output, _ = process.communicate(timeout=RUN_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        output, _ = process.communicate(timeout=10)
-        pytest.fail(f"{' '.join(command)} did not finish in {RUN_TIMEOUT_S} s:\n{output}")
-    return process.returncode, output
+    return finish_in_group(command, cwd=cwd, timeout_s=RUN_TIMEOUT_S, env=ENV)
 
 
 def hilswarm(*args: str, cwd: Path) -> tuple[int, str]:

@@ -9,9 +9,6 @@ leader's safe mode ends the run for everyone.
 from __future__ import annotations
 
 import math
-import os
-import signal
-import subprocess
 import sys
 from pathlib import Path
 
@@ -20,6 +17,7 @@ import pytest
 from hilswarm.agents.controllers.follower import OffsetFollower
 from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.orchestrator.experiment import load_experiment
+from swarm_harness import finish_in_group
 
 pytestmark = pytest.mark.integration
 
@@ -34,20 +32,11 @@ def run_experiment(experiment: Path, folder: Path) -> tuple[int, str, dict[str, 
     out = folder / "run.mcap"
     command = [sys.executable, "-m", "hilswarm.orchestrator.cli", "run", str(experiment),
                "--out", str(out)]  # fmt: skip
-    process = subprocess.Popen(
-        command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True, cwd=out.parent,
-    )  # fmt: skip
-    try:
-        output, _ = process.communicate(timeout=RUN_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        output, _ = process.communicate(timeout=10)
-        pytest.fail(f"hilswarm run did not finish in {RUN_TIMEOUT_S} s:\n{output}")
+    code, output = finish_in_group(command, cwd=out.parent, timeout_s=RUN_TIMEOUT_S)
     messages: dict[str, list[dict]] = {}
     for topic, _, message in iter_messages(out):
         messages.setdefault(topic, []).append(message)
-    return process.returncode, output, messages
+    return code, output, messages
 
 
 @pytest.fixture(scope="module")

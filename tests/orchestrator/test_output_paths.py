@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import errno
 import logging
-import os
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -27,6 +25,9 @@ from hilswarm.orchestrator.output_paths import (
 from hilswarm.orchestrator.recorder import Recorder
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "integration"))
+from swarm_harness import finish_in_group
+
 GRAPHS = Path(__file__).resolve().parents[2] / "graphs"
 CLI = (sys.executable, "-m", "hilswarm.orchestrator.cli")
 TIMEOUT_S = 120
@@ -36,17 +37,7 @@ UNWRITABLE = Path("/proc")
 
 def hilswarm(*args: str, cwd: Path, wrap: tuple[str, ...] = ()) -> tuple[int, str]:
     """The CLI in a process group of its own (killed after TIMEOUT_S): status, output."""
-    process = subprocess.Popen(
-        [*wrap, *CLI, *args], cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-        text=True, start_new_session=True,
-    )  # fmt: skip
-    try:
-        output, _ = process.communicate(timeout=TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        output, _ = process.communicate(timeout=10)
-        pytest.fail(f"hilswarm {' '.join(args)} did not finish in {TIMEOUT_S} s:\n{output}")
-    return process.returncode, output
+    return finish_in_group([*wrap, *CLI, *args], cwd=cwd, timeout_s=TIMEOUT_S)
 
 
 def read_only_mount_wrap(folder: Path) -> tuple[str, ...]:
