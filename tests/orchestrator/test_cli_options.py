@@ -38,7 +38,7 @@ def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
     return err
 
 
-# -- finding 1: endpoints --------------------------------------------------------------------
+# -- endpoints ------------------------------------------------------------------------------------
 
 ENDPOINT_COMMANDS = [
     pytest.param(["run", RING, "--connect", "foo"], "--connect", "foo", id="run-connect"),
@@ -127,7 +127,7 @@ def test_a_session_that_cannot_open_is_told_in_words() -> None:
     assert not isinstance(raised.value, zenoh.ZError)
 
 
-# -- finding 2: durations, timeouts, counts ----------------------------------------------------
+# -- durations, timeouts, counts ------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -175,7 +175,7 @@ def test_an_explicit_max_agents_is_named_as_such(capsys: pytest.CaptureFixture[s
     assert "without an explicit limit" not in err
 
 
-# -- finding 4: xbee setup settings -----------------------------------------------------------
+# -- xbee setup settings --------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -208,7 +208,7 @@ def test_xbee_setup_settings_in_range_are_taken_as_written() -> None:
     assert (args.channel, args.pan_id, args.new_baud, args.baud) == (0x1A, 0xFFFF, 9600, 115200)
 
 
-# -- finding 5: mocap host names that do not resolve ------------------------------------------
+# -- mocap host names that do not resolve ---------------------------------------------------------
 
 
 @pytest.fixture
@@ -251,7 +251,7 @@ def test_each_client_looks_up_the_host_without_its_port(no_dns: list[str]) -> No
     ]
 
 
-# -- finding 6: --version ---------------------------------------------------------------------
+# -- --version ------------------------------------------------------------------------------------
 
 
 def test_version_names_the_package_and_the_wire_protocols(
@@ -270,7 +270,7 @@ def test_version_names_the_package_and_the_wire_protocols(
     )
 
 
-# -- finding 7: the e-stop reason -------------------------------------------------------------
+# -- the e-stop reason ----------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
