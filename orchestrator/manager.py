@@ -466,9 +466,9 @@ class InstanceManager:
             logger.warning("operator request not understood: %s", exc)
             return
         payload = bus.encode_control(command, reason=reason)
-        if command is bus.ControlCommand.STOP:
-            with self._lock:
-                self._stopping = True  # the agents' safe states from here on are the stop's
+        if command in (bus.ControlCommand.STOP, bus.ControlCommand.ESTOP):
+            with self._lock:  # the agents' safe states from here on are the (e-)stop's
+                self._stopping = True
         self._events.put((_CONTROL, payload))  # first: the manager knows before any agent
         self._control_pub.put(payload)
 
@@ -512,6 +512,8 @@ class InstanceManager:
 
     def estop(self, reason: str = "e-stop") -> None:
         """Swarm-wide e-stop: every agent's outputs to safe values now, then the run stops."""
+        with self._lock:  # the agents' safe states from here on are the e-stop's, not faults
+            self._stopping = True
         self._control_pub.put(bus.encode_control(bus.ControlCommand.ESTOP, reason=reason))
 
     # -- start-up ----------------------------------------------------------------------------
