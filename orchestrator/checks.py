@@ -82,6 +82,7 @@ class CheckReport:
         problems: errors; the file cannot run while there are any.
         warnings: things that may be intended but are worth a look.
         facts: the graph facts (``None`` when the graph could not be read).
+        unused_links: agents whose vehicle needs no board although a link is given (warned).
     """
 
     path: Path
@@ -89,6 +90,7 @@ class CheckReport:
     problems: list[Problem] = field(default_factory=list)
     warnings: list[Problem] = field(default_factory=list)
     facts: GraphFacts | None = None
+    unused_links: set[str] = field(default_factory=set)
 
     @property
     def ok(self) -> bool:
@@ -411,6 +413,7 @@ class _AgentCheck:
             self.problem("link", str(exc))
             return None
         if vehicle_cls is not None and not getattr(vehicle_cls, "needs_board", True):
+            self.report.unused_links.add(spec.name)
             self.warning(
                 "link",
                 f"vehicle {spec.vehicle!r} needs no board; link {spec.link!r} is not used",

@@ -13,7 +13,6 @@ import argparse
 import sys
 from pathlib import Path
 
-from hilswarm.agents.registry import resolve_vehicle
 from hilswarm.orchestrator.checks import CheckReport, check_file
 from hilswarm.orchestrator.commands.overrides import add_override_arguments, overrides_from_args
 
@@ -88,17 +87,12 @@ def summary(report: CheckReport) -> str:
         )
     for spec in experiment.agents[:SUMMARY_AGENTS]:
         link = spec.link or "(no board)"
-        if spec.link and not _needs_board(spec.vehicle):
+        if spec.name in report.unused_links:
             link = f"(no board; link {spec.link} not used)"
         lines.append(f"  {spec.name}: {spec.vehicle} via {link}, controller {spec.controller}")
     if len(experiment.agents) > SUMMARY_AGENTS:
         lines.append(f"  ... and {len(experiment.agents) - SUMMARY_AGENTS} more agents")
     return "\n".join(lines)
-
-
-def _needs_board(vehicle: str) -> bool:
-    """Whether vehicle class ``vehicle`` uses its link (it resolved: the file is valid)."""
-    return bool(getattr(resolve_vehicle(vehicle), "needs_board", True))
 
 
 def write_schema(target: str) -> int:

@@ -98,7 +98,7 @@ def test_endpoints_zenoh_would_only_refuse_at_open_are_refused_up_front(
         "tcp/[::1]:7447",
         "tcp/localhost:7447?iface=lo#rx_buffer_size=1024",
         "udp/10.0.0.1:7447",
-        "unixsock-stream/tmp/bus.sock",
+        "unixsock-stream/hilswarm-bus.sock",
     ],
 )
 def test_endpoints_are_accepted_as_zenoh_takes_them(endpoint: str) -> None:
