@@ -55,7 +55,10 @@ def agent_preload() -> tuple[str, ...]:
     """Modules imported by the server before it forks: the agent and every library class."""
     tables = (registry.VEHICLES, registry.CONTROLLERS, registry.PLANTS)
     modules = {path.partition(":")[0] for table in tables for path in table.values()}
-    return ("hilswarm.agents.agent", *sorted(modules))
+    # Imported lazily by agents on simulated links (no pose source of their own): every
+    # simulated Frisbee and blimp would otherwise import it after its fork.
+    lazy = ("hilswarm.agents.sim.mocap",)
+    return ("hilswarm.agents.agent", *sorted(modules), *lazy)
 
 
 #: Bound on the server's answer to one request [s].

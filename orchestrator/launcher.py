@@ -131,16 +131,36 @@ class AgentLauncher:
         """The command line that starts ``config``'s agent in a new interpreter."""
         return [self.python, "-m", "hilswarm.agents.agent", *self.arguments(config)]
 
+    def prepare(self) -> None:
+        """Start the fork server now (``start_method="fork"``; nothing otherwise).
+
+        The server imports the agent code (~1 s of CPU) while the caller goes on: ``hilswarm
+        run`` calls this before it opens the bus and writes the credentials, so that work and
+        the import overlap. :meth:`start` calls it too; a fork request waits for the import.
+
+        Raises:
+            AgentProcessError: the server process cannot be started.
+        """
+        if self.start_method == "fork":
+            self._server()
+
+    def _server(self) -> ForkServer:
+        if self._fork_server is None:
+            try:
+                self._fork_server = ForkServer(python=self.python, env=self.env)
+            except SpawnError as exc:
+                raise AgentProcessError(f"cannot start agents: {exc}") from exc
+        return self._fork_server
+
     def start(self, config: AgentConfig) -> subprocess.Popen[bytes] | ForkedProcess:
         """Start ``config``'s agent in its own process group."""
         if config.name in self.processes:
             raise AgentProcessError(f"agent {config.name!r} was already started")
         if self.start_method == "fork":
-            if self._fork_server is None:
-                self._fork_server = ForkServer(python=self.python, env=self.env)
+            server = self._server()
             title = f"hilswarm.agents.agent --name {config.name} --experiment {config.experiment}"
             try:
-                process: subprocess.Popen[bytes] | ForkedProcess = self._fork_server.spawn(
+                process: subprocess.Popen[bytes] | ForkedProcess = server.spawn(
                     "hilswarm.agents.agent", self.arguments(config), title=title
                 )
             except SpawnError as exc:

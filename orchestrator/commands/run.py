@@ -337,6 +337,8 @@ def _run(
     error = ""
     mocap = MocapRunner(experiment, [], run_id=run_id) if experiment.mocap is not None else None
     try:
+        if len(args.remote) < len(experiment.agents):  # agents of ours: their code imports now
+            launcher.prepare()
         manager.open()
         endpoints = manager.endpoints
         launcher.endpoints = [e for e in endpoints if is_loopback(e)] or endpoints

@@ -65,6 +65,33 @@ def test_inverse_is_exact_inside_the_table() -> None:
         assert cal.to_u("v", cal.to_pwm("v", u)) == pytest.approx(u, abs=1e-12)
 
 
+@pytest.mark.parametrize("falling", [False, True])
+def test_inverse_is_the_root_scipy_finds_on_random_tables(falling: bool) -> None:
+    """The interval's bracketed Newton search lands on PPoly.solve's root (seeded tables,
+    rising and falling, at every integer duty, the knots and the table's ends)."""
+    rng = np.random.default_rng(7 + falling)
+    for _ in range(20):
+        n = int(rng.integers(2, 12))
+        u = np.cumsum(rng.uniform(0.01, 0.3, n)) - 0.5
+        pwm = np.sort(rng.choice(np.arange(-255, 256), n, replace=False)).astype(float)
+        if falling:
+            pwm = pwm[::-1]
+        curve = CalibrationCurve.build("v", u, pwm)
+        slope = curve._spline.derivative()
+        lo, hi = curve.pwm_range
+        duties = np.concatenate([np.arange(np.ceil(lo), np.floor(hi) + 1), pwm, [lo, hi]])
+        for duty in duties:
+            roots = curve._spline.solve(duty, extrapolate=False)
+            roots = roots[np.isfinite(roots)]
+            found = curve.u_at(np.array([duty]))[0]
+            assert curve.u_range[0] <= found <= curve.u_range[1]
+            # a root to the last bits: pwm within what a few ulps of u and of pwm can reach
+            ulps = abs(slope(found)) * np.spacing(abs(found) + 1.0) + np.spacing(256.0)
+            assert abs(curve.pwm_at_scalar(found) - duty) <= 4 * ulps
+            if roots.size and abs(slope(roots[0])) > 1.0:  # not on a flat spot: the same u
+                assert found == pytest.approx(roots[0], rel=1e-12, abs=1e-15)
+
+
 def test_arrays_in_arrays_out() -> None:
     cal = calibration()
     out = cal.to_pwm("v", np.array([0.0, 0.1]))

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from hilswarm.agents.spawner import UNKNOWN_EXIT, ForkServer, SpawnError
+from hilswarm.orchestrator.launcher import AgentLauncher
 
 pytestmark = pytest.mark.integration
 
@@ -90,3 +91,22 @@ def test_children_outlive_a_killed_server_and_are_still_watched(
     os.killpg(child.pid, signal.SIGKILL)
     wait_until(lambda: child.poll() is not None, 10, "the orphan's end")
     assert child.returncode == UNKNOWN_EXIT
+
+
+def test_a_prepared_launcher_starts_its_server_at_once_and_closes_it_unused() -> None:
+    """``hilswarm run`` prepares the fork server before it opens the bus; a run that then
+    fails before any agent starts must not leave the server behind."""
+    launcher = AgentLauncher(["tcp/127.0.0.1:7447"])
+    launcher.prepare()
+    server = launcher._fork_server
+    assert server is not None
+    assert server._process.poll() is None  # importing the agent code, already running
+    launcher.prepare()
+    assert launcher._fork_server is server  # one server per launcher
+    launcher.stop(told=False)
+    assert launcher._fork_server is None
+    assert server._process.wait(10) == 0  # its input closed: it ended by itself
+
+    exec_launcher = AgentLauncher(["tcp/127.0.0.1:7447"], start_method="exec")
+    exec_launcher.prepare()
+    assert exec_launcher._fork_server is None
