@@ -97,13 +97,25 @@ class Node:
     rssi_dbm: int | None
 
 
+#: Bound on each local AT command while the coordinator is opened [s].
+OPEN_TIMEOUT_S = 1.5
+#: digi-xbee's default bound on a synchronous operation (remote AT commands) [s].
+SYNC_OPS_TIMEOUT_S = 4
+
+
 def _open(port: str, baud: int):
     from digi.xbee.devices import XBeeDevice  # noqa: PLC0415 - heavy import, CLI only
     from digi.xbee.exception import XBeeException  # noqa: PLC0415
 
     device = XBeeDevice(port, baud)
     try:
+        # A local radio answers its AT commands within milliseconds: 1.5 s instead of
+        # digi-xbee's 4 s for the AP query. A silent port then fails after ~6 s instead of
+        # ~8 s: the rest is digi-xbee's probe for a radio in transparent mode (guard times
+        # around +++), kept, as it names that case.
+        device.set_sync_ops_timeout(OPEN_TIMEOUT_S)
         device.open()
+        device.set_sync_ops_timeout(SYNC_OPS_TIMEOUT_S)  # remote commands cross the air
     except (XBeeException, OSError) as exc:
         raise RadioSetupError(
             f"no XBee in API mode answers at {port} ({baud} baud): {exc}; check the port and "
@@ -122,7 +134,7 @@ def scan(
     """
     from digi.xbee.exception import XBeeException  # noqa: PLC0415
 
-    progress(f"asking the radio at {port} ({baud} baud)...")  # a silent port takes ~8 s
+    progress(f"asking the radio at {port} ({baud} baud)...")  # a silent port: ~6 s (AP, then +++)
     device = _open(port, baud)
     try:
         progress(
@@ -178,7 +190,7 @@ def setup(
     check_pan_id(pan_id)
     for rate in (baud, robot_baud, new_baud or baud):
         check_baud(rate)
-    progress(f"asking the radio at {port} ({baud} baud)...")  # a silent port takes ~8 s
+    progress(f"asking the radio at {port} ({baud} baud)...")  # a silent port: ~6 s (AP, then +++)
     device = _open(port, baud)
     try:
         own = int(str(device.get_64bit_addr()), 16)
