@@ -591,6 +591,7 @@ class InstanceManager:
             else:
                 self._release_window()
         next_display = start + 0.5
+        shown_paused = self._paused  # a pause or resume is shown at once (and in `ps`)
         while not self._stop_reason:
             now = clock()
             if self._reanchor:  # realtime resume: tick k+1 is due one period from now
@@ -612,9 +613,10 @@ class InstanceManager:
                 wait_until = due
             else:
                 wait_until = min(now + 0.1, tick.last_progress + self.answer_timeout_s)
-            if now >= next_display:
+            if now >= next_display or self._paused != shown_paused:
                 self._show(tick.base - 1, start, now)
                 next_display = now + 0.5
+                shown_paused = self._paused
             if feed is not None and now >= feed.next_flush:  # no tick completed to carry it
                 self._flush_records(now)
             try:
