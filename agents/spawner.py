@@ -15,8 +15,11 @@ a fork. The server never opens one; it only imports.
 Protocol between the launcher (:class:`ForkServer`) and the server (``python -m
 hilswarm.agents.spawner``), one JSON object per line:
 
-* launcher -> server: ``{"module": M, "argv": [...], "title": T}``: fork a child running
-  ``M.main(argv)``; the server answers ``{"pid": P}`` (or ``{"error": "..."}``);
+* launcher -> server: ``{"module": M, "argv": [...], "title": T, "path": [...]}``: fork a
+  child running ``M.main(argv)``, with the folders ``path`` (optional) first on its
+  ``sys.path`` and ``PYTHONPATH`` (the experiment's folder, for a user's classes: the server
+  can then start before the experiment is known); the server answers ``{"pid": P}`` (or
+  ``{"error": "..."}``);
 * server -> launcher: ``{"exit": P, "code": C}`` when child ``P`` ended (``C`` as
   :attr:`subprocess.Popen.returncode`: negative for a signal).
 
@@ -149,6 +152,7 @@ class ForkServer:
         self._replies: queue.SimpleQueue[ForkedProcess | str] = queue.SimpleQueue()
         self._children: dict[int, ForkedProcess] = {}
         self._early_exits: dict[int, int] = {}
+        self._asked = False  # no fork asked for yet: close() may end the server at once
         try:
             self._process = subprocess.Popen(
                 [python, "-m", "hilswarm.agents.spawner", *(preload or agent_preload())],
@@ -164,10 +168,16 @@ class ForkServer:
         )
         self._reader.start()
 
-    def spawn(self, module: str, argv: Sequence[str], *, title: str) -> ForkedProcess:
-        """Fork a child that runs ``module.main(argv)`` with process title ``title``."""
-        request = json.dumps({"module": module, "argv": list(argv), "title": title})
+    def spawn(
+        self, module: str, argv: Sequence[str], *, title: str, path: Sequence[str] = ()
+    ) -> ForkedProcess:
+        """Fork a child that runs ``module.main(argv)`` with process title ``title`` and the
+        folders ``path`` first on its import path."""
+        request = json.dumps(
+            {"module": module, "argv": list(argv), "title": title, "path": list(path)}
+        )
         with self._lock:
+            self._asked = True
             if self.gone or self._process.stdin is None:
                 raise SpawnError("the agent fork server is gone")
             try:
@@ -186,8 +196,14 @@ class ForkServer:
         return reply
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Stop the server (its children are not touched: they are the launcher's to stop)."""
+        """Stop the server (its children are not touched: they are the launcher's to stop).
+
+        A server never asked to fork is ended at once (SIGTERM), rather than after its
+        imports (~1 s) when it would read the end of its input. Idempotent.
+        """
         with self._lock:
+            if not self._asked and self._process.poll() is None:
+                self._process.terminate()
             if self._process.stdin is not None and not self._process.stdin.closed:
                 with contextlib.suppress(OSError):
                     self._process.stdin.close()
@@ -247,6 +263,11 @@ def _run_child(request: Mapping[str, Any], keep: Sequence[int]) -> int:
     sys.stdin = open(0, closefd=False)  # noqa: SIM115 - the process's own stdin, never closed
     sys.stdout = open(1, "w", closefd=False)  # noqa: SIM115
     setproctitle.setproctitle(str(request["title"]))
+    folders = [str(folder) for folder in request.get("path", ())]
+    if folders:  # as the PYTHONPATH of an agent started with ``python -m``
+        sys.path[:0] = folders
+        inherited = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        os.environ["PYTHONPATH"] = os.pathsep.join([*folders, *inherited])
     argv = [str(a) for a in request["argv"]]
     sys.argv = [str(request["module"]), *argv]
     try:

@@ -88,6 +88,9 @@ class AgentLauncher:
         credentials: agent name -> its credentials file (``None``: the bus needs none).
         start_method: ``"fork"`` (the fork server, default) or ``"exec"`` (a new interpreter
             per agent).
+        fork_server: a fork server already started (``hilswarm run`` starts one before it
+            imports its own modules, so both import at once); it must have been started with
+            this launcher's ``env``. The launcher owns it from here: :meth:`stop` closes it.
     """
 
     def __init__(
@@ -100,19 +103,22 @@ class AgentLauncher:
         verbose: int = 0,
         credentials: Mapping[str, Path] | None = None,
         start_method: str = "fork",
+        fork_server: ForkServer | None = None,
     ) -> None:
         if start_method not in ("fork", "exec"):
             raise ValueError(f"start_method must be 'fork' or 'exec', got {start_method!r}")
         self.start_method = start_method
-        self._fork_server: ForkServer | None = None
+        self._fork_server = fork_server if start_method == "fork" else None
         self.endpoints = list(endpoints)
         self.credentials = dict(credentials or {})
         self.python = python
         self.env = {**os.environ, **(env or {})}
-        if import_paths:
-            inherited = [p for p in self.env.get("PYTHONPATH", "").split(os.pathsep) if p]
-            folders = [str(Path(p).resolve()) for p in import_paths]
-            self.env["PYTHONPATH"] = os.pathsep.join([*folders, *inherited])
+        #: Folders first on every agent's import path: with ``python -m`` in its PYTHONPATH,
+        #: with the fork server in each fork request (the server's own environment is
+        #: ``env``, so it can start before the experiment is known).
+        self.import_paths = [str(Path(p).resolve()) for p in import_paths]
+        if fork_server is not None and start_method != "fork":
+            fork_server.close()
         self.verbose = verbose
         self.processes: dict[str, subprocess.Popen[bytes] | ForkedProcess] = {}
 
@@ -130,6 +136,15 @@ class AgentLauncher:
     def command(self, config: AgentConfig) -> list[str]:
         """The command line that starts ``config``'s agent in a new interpreter."""
         return [self.python, "-m", "hilswarm.agents.agent", *self.arguments(config)]
+
+    def _exec_env(self) -> dict[str, str]:
+        """The environment of an agent started with ``python -m``: ``env`` and the import
+        paths first on its PYTHONPATH."""
+        env = dict(self.env)
+        if self.import_paths:
+            inherited = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+            env["PYTHONPATH"] = os.pathsep.join([*self.import_paths, *inherited])
+        return env
 
     def prepare(self) -> None:
         """Start the fork server now (``start_method="fork"``; nothing otherwise).
@@ -161,14 +176,17 @@ class AgentLauncher:
             title = f"hilswarm.agents.agent --name {config.name} --experiment {config.experiment}"
             try:
                 process: subprocess.Popen[bytes] | ForkedProcess = server.spawn(
-                    "hilswarm.agents.agent", self.arguments(config), title=title
+                    "hilswarm.agents.agent",
+                    self.arguments(config),
+                    title=title,
+                    path=self.import_paths,
                 )
             except SpawnError as exc:
                 raise AgentProcessError(f"cannot start agent {config.name!r}: {exc}") from exc
         else:
             process = subprocess.Popen(
                 self.command(config),
-                env=self.env,
+                env=self._exec_env(),
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL,
                 start_new_session=True,

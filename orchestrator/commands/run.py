@@ -310,7 +310,10 @@ def _run(
         live_port=args.live,
     )
     launcher = AgentLauncher(
-        [], verbose=max(0, args.verbose - 1), import_paths=[experiment.path.parent]
+        [],
+        verbose=max(0, args.verbose - 1),
+        import_paths=[experiment.path.parent],
+        fork_server=getattr(args, "fork_server", None),  # started by the CLI (cli.py)
     )
     manager = InstanceManager(
         experiment,

@@ -105,8 +105,39 @@ def test_a_prepared_launcher_starts_its_server_at_once_and_closes_it_unused() ->
     assert launcher._fork_server is server  # one server per launcher
     launcher.stop(told=False)
     assert launcher._fork_server is None
-    assert server._process.wait(10) == 0  # its input closed: it ended by itself
+    assert server._process.wait(10) == -signal.SIGTERM  # never asked to fork: ended at once
 
     exec_launcher = AgentLauncher(["tcp/127.0.0.1:7447"], start_method="exec")
     exec_launcher.prepare()
     assert exec_launcher._fork_server is None
+
+
+def test_a_fork_request_puts_its_folders_first_on_the_child_import_path(
+    server: ForkServer, tmp_path: Path
+) -> None:
+    """The experiment's folder travels with each request (the server starts before it is
+    known): the child imports a user module from it, and its PYTHONPATH starts with it."""
+    user = tmp_path / "userdir"
+    user.mkdir()
+    (user / "usermod.py").write_text(
+        "import os, pathlib, sys\n"
+        "def main(argv):\n"
+        "    pathlib.Path(argv[0]).write_text(os.environ['PYTHONPATH'].split(os.pathsep)[0])\n"
+        "    return 5\n",
+        encoding="utf-8",
+    )
+    out = tmp_path / "pythonpath.txt"
+    child = server.spawn("usermod", [str(out)], title="u", path=[str(user)])
+    assert child.wait(20) == 5
+    assert out.read_text() == str(user)
+
+
+def test_an_unused_server_is_ended_at_once(tmp_path: Path) -> None:
+    """``hilswarm run --help`` or a run refused before its agents start: the server, still
+    importing, is terminated instead of being waited for."""
+    fork_server = ForkServer()
+    began = time.monotonic()
+    fork_server.close()
+    assert fork_server._process.returncode == -signal.SIGTERM
+    assert time.monotonic() - began < 5
+    fork_server.close()  # idempotent

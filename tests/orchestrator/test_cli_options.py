@@ -6,6 +6,7 @@ All through the real entry point, in-process (``main([...])``); nothing here ope
 
 from __future__ import annotations
 
+import os
 import socket
 from pathlib import Path
 
@@ -284,3 +285,33 @@ def test_version_names_the_package_and_the_wire_protocols(
 )
 def test_the_estop_reason_is_said_once(given: str, recorded: str) -> None:
     assert estop_reason(given) == recorded
+
+
+def _fork_servers_of_this_process() -> list[int]:
+    """Pids of agent fork servers whose parent is this test process."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        parent = int(stat.rsplit(")", 1)[1].split()[1])
+        if parent == os.getpid() and b"hilswarm.agents.spawner" in cmdline:
+            found.append(int(entry.name))
+    return found
+
+
+def test_run_starts_its_fork_server_first_and_never_leaves_it_behind(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``hilswarm run`` starts the agents' fork server before it imports its own modules;
+    when the command ends without forking (``--help``, a usage error) the server is ended
+    at once, not left importing."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["run", "--help"])
+    assert stopped.value.code == 0
+    usage_error(["run", LEAD, "--start-timeout", "-1"], capsys)
+    assert _fork_servers_of_this_process() == []  # reaped: none left, not even a zombie
