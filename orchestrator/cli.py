@@ -3,8 +3,8 @@
 Each subcommand lives in its own module under :mod:`hilswarm.orchestrator.commands` and exposes
 ``HELP: str``, ``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported only for
 the command being run, so ``hilswarm check`` starts fast and never imports Zenoh. For ``run``
-the agents' fork server is started first, so that its imports and the command's overlap
-(:data:`FORKS_AGENTS`).
+the agents' fork server and the recorder process are started first, so that their imports
+and the command's overlap (:data:`FORKS_AGENTS`).
 
 Exit status: 0 success, 1 the run failed, 2 bad input (file, key or value), 130 interrupted,
 141 (128 + SIGPIPE, as a shell tool killed by it) the reader of the output went away
@@ -34,6 +34,8 @@ from typing import TYPE_CHECKING
 from hilswarm.agents.errors import HilswarmError
 
 if TYPE_CHECKING:
+    import subprocess
+
     from hilswarm.agents.spawner import ForkServer
 
 #: Exit status when the reader of the output closed its end of the pipe (128 + SIGPIPE).
@@ -130,9 +132,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return INTERRUPTED
 
 
-#: Commands that fork agents on this machine: their fork server is started before the
-#: command's modules are imported, so that its imports (the agent code, ~1 s of CPU) and the
-#: command's own run at once, on two cores. The command finds it as ``args.fork_server``.
+#: Commands that fork agents and record on this machine: their fork server and recorder
+#: process are started before the command's modules are imported, so that their imports
+#: (~1 s of CPU each) and the command's own run at once, on two cores. The command finds
+#: them as ``args.fork_server`` and ``args.recorder_process``; what it did not take over is
+#: ended when it returns.
 FORKS_AGENTS = frozenset({"run"})
 
 
@@ -141,26 +145,39 @@ def _main(argv: Sequence[str] | None) -> int:
     command = next((a for a in args_list if not a.startswith("-")), None)
     if command not in COMMANDS:
         command = None
-    server = _early_fork_server(command)
+    server, recorder = _early_processes(command)
     try:
-        return _command(args_list, command, server)
+        return _command(args_list, command, server, recorder)
     finally:
         if server is not None:  # unused, or already closed by the command: both are fine
             server.close()
+        if recorder is not None and recorder.poll() is None:  # never given its set-up
+            recorder.terminate()
+            recorder.wait()
 
 
-def _early_fork_server(command: str | None) -> ForkServer | None:
+def _early_processes(
+    command: str | None,
+) -> tuple[ForkServer | None, subprocess.Popen[bytes] | None]:
     if command not in FORKS_AGENTS:
-        return None
+        return None, None
     from hilswarm.agents.spawner import ForkServer, SpawnError  # noqa: PLC0415 - run only
+    from hilswarm.orchestrator.recorder_spawn import start_recorder_process  # noqa: PLC0415
 
-    try:
-        return ForkServer()
-    except SpawnError:
-        return None  # the command's own launcher tries again, and says what failed
+    server = recorder = None  # if one cannot start, the command starts its own and says why
+    with contextlib.suppress(SpawnError):
+        server = ForkServer()
+    with contextlib.suppress(OSError):
+        recorder = start_recorder_process()
+    return server, recorder
 
 
-def _command(args_list: list[str], command: str | None, server: ForkServer | None) -> int:
+def _command(
+    args_list: list[str],
+    command: str | None,
+    server: ForkServer | None,
+    recorder: subprocess.Popen[bytes] | None,
+) -> int:
     with _exit_on_interrupt():
         try:
             parser = build_parser(command)
@@ -174,6 +191,8 @@ def _command(args_list: list[str], command: str | None, server: ForkServer | Non
         )
     if server is not None:
         args.fork_server = server
+    if recorder is not None:
+        args.recorder_process = recorder
     try:
         code = int(_command_module(args.command).run(args) or 0)
         sys.stdout.flush()  # here, not at exit: a closed pipe is handled below

@@ -73,6 +73,7 @@ from hilswarm.orchestrator.experiment import Experiment
 from hilswarm.orchestrator.output_paths import is_no_space, watch_writer_errors
 from hilswarm.orchestrator.record_stream import definitions
 from hilswarm.orchestrator.recorder import Recorder, record_vehicles
+from hilswarm.orchestrator.recorder_spawn import start_recorder_process
 from hilswarm.orchestrator.run_summary import RecordingReport
 from hilswarm.orchestrator.segments import existing_segments, segment_path
 from hilswarm.orchestrator.stream_recorder import StreamRecorder
@@ -181,6 +182,10 @@ class RecorderProcess:
         live_port: serve the run live on this localhost port (0: a free one; ``None``: no
             live view), see :mod:`hilswarm.orchestrator.live_view`. A restarted process
             serves on the port the first one chose.
+        process: a recorder process already started (:func:`start_recorder_process`), used
+            as the first one: ``hilswarm run`` starts it before its own imports, so the
+            process imports (~1 s) meanwhile; it waits for its set-up on its pipe. From here
+            this object owns it.
 
     Call :meth:`wait_ready` before the first tick and :meth:`close` on every exit path.
     """
@@ -199,6 +204,7 @@ class RecorderProcess:
         on_failure: Callable[[str], None] | None = None,
         max_restarts: int = MAX_RESTARTS,
         live_port: int | None = None,
+        process: subprocess.Popen[bytes] | None = None,
     ) -> None:
         if queue_bytes < 1:
             raise RecordingError(f"queue_bytes must be positive [bytes], got {queue_bytes}")
@@ -246,7 +252,7 @@ class RecorderProcess:
         self.resent_records = 0
         self._setups: dict[int, bytes] = {}  # set-up message of each process started
         self._generation = -1
-        first = self._spawn(self._staging or self.path)
+        first = self._spawn(self._staging or self.path, process)
         with self._changed:
             self._install(first)
         self.pipe_size = _enlarge_pipe(self._fd, PIPE_SIZE)
@@ -274,8 +280,11 @@ class RecorderProcess:
         self._stdin_closed = False
         self._changed.notify_all()
 
-    def _spawn(self, path: Path) -> subprocess.Popen[bytes]:
-        """Start a recorder process on ``path``; :meth:`_install` makes it the current one."""
+    def _spawn(
+        self, path: Path, process: subprocess.Popen[bytes] | None = None
+    ) -> subprocess.Popen[bytes]:
+        """Start a recorder process on ``path`` (or give ``process``, already started, its
+        set-up); :meth:`_install` makes it the current one."""
         setup = pickle.dumps(
             {
                 "path": str(path),
@@ -286,12 +295,8 @@ class RecorderProcess:
                 "live_port": self._live_port,
             }
         )
-        process = subprocess.Popen(
-            [self._python, "-m", "hilswarm.orchestrator.recorder_process"],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            start_new_session=True,
-        )
+        if process is None:
+            process = start_recorder_process(self._python)
         self._setups[process.pid] = _LENGTH.pack(len(setup)) + setup
         return process
 

@@ -308,6 +308,7 @@ def _run(
         staged=True,
         on_failure=recording_failed,
         live_port=args.live,
+        process=getattr(args, "recorder_process", None),  # started by the CLI (cli.py)
     )
     launcher = AgentLauncher(
         [],

@@ -287,8 +287,8 @@ def test_the_estop_reason_is_said_once(given: str, recorded: str) -> None:
     assert estop_reason(given) == recorded
 
 
-def _fork_servers_of_this_process() -> list[int]:
-    """Pids of agent fork servers whose parent is this test process."""
+def _early_processes_of_this_process() -> list[int]:
+    """Pids of agent fork servers and recorder processes whose parent is this process."""
     found = []
     for entry in Path("/proc").iterdir():
         if not entry.name.isdigit():
@@ -299,19 +299,20 @@ def _fork_servers_of_this_process() -> list[int]:
         except OSError:
             continue
         parent = int(stat.rsplit(")", 1)[1].split()[1])
-        if parent == os.getpid() and b"hilswarm.agents.spawner" in cmdline:
+        started = b"hilswarm.agents.spawner" in cmdline or b"recorder_process" in cmdline
+        if parent == os.getpid() and started:
             found.append(int(entry.name))
     return found
 
 
-def test_run_starts_its_fork_server_first_and_never_leaves_it_behind(
+def test_run_starts_its_processes_first_and_never_leaves_them_behind(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    """``hilswarm run`` starts the agents' fork server before it imports its own modules;
-    when the command ends without forking (``--help``, a usage error) the server is ended
-    at once, not left importing."""
+    """``hilswarm run`` starts the agents' fork server and its recorder process before it
+    imports its own modules; when the command ends without using them (``--help``, a usage
+    error) they are ended at once, not left importing or waiting for a set-up."""
     with pytest.raises(SystemExit) as stopped:
         main(["run", "--help"])
     assert stopped.value.code == 0
     usage_error(["run", LEAD, "--start-timeout", "-1"], capsys)
-    assert _fork_servers_of_this_process() == []  # reaped: none left, not even a zombie
+    assert _early_processes_of_this_process() == []  # reaped: none left, not even a zombie

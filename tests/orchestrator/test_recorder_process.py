@@ -22,6 +22,7 @@ from hilswarm.orchestrator.experiment import Experiment, load_experiment
 from hilswarm.orchestrator.record_stream import RecordBatch, RecordWriter, hand_over
 from hilswarm.orchestrator.recorder import Recorder, record_vehicles
 from hilswarm.orchestrator.recorder_process import RECORDER_NICE, RecorderProcess
+from hilswarm.orchestrator.recorder_spawn import start_recorder_process
 from hilswarm.orchestrator.stream_recorder import StreamRecorder
 from mcap.reader import make_reader
 
@@ -204,6 +205,26 @@ def wait_until(condition: Callable[[], bool], timeout_s: float = 30.0) -> bool:
             return True
         time.sleep(0.01)
     return condition()
+
+
+def test_a_recorder_process_started_early_is_given_its_set_up_and_records(
+    tmp_path: Path, experiment: Experiment
+) -> None:
+    """``hilswarm run`` starts the recorder process before the run is known; the
+    RecorderProcess made later adopts it (no second process) and the recording is whole."""
+    early = start_recorder_process()
+    path = tmp_path / "run.mcap"
+    recorder = RecorderProcess(path, experiment, log_time_ns=T0, process=early)
+    try:
+        recorder.wait_ready()
+        assert recorder.process is early
+        batches, expected = mixed_stream(experiment.dt)
+        for batch in batches:
+            hand_over(recorder, batch)
+    finally:
+        assert recorder.close() == 0
+    assert early.returncode == 0
+    assert recorded(path) == expected
 
 
 def test_recorder_process_lowers_its_priority(tmp_path: Path, experiment: Experiment) -> None:
