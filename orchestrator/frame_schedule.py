@@ -18,12 +18,14 @@ from typing import Any
 
 from hilswarm.agents import bus
 from hilswarm.agents.mocap import frame_clock
-from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
+from hilswarm.orchestrator.frame_lock import ACQUIRE_FRAMES, FrameLock, TickClock
 
 logger = logging.getLogger(__name__)
 
 #: Period of the ``frame_lock`` record while the lock holds [s].
 FRAME_LOCK_REPORT_S = 10.0
+#: How long a frame-locked run waits before tick 0 for the frames that set the lock [s].
+FRAME_ACQUIRE_WAIT_S = 2.0
 
 
 class FrameSchedule:
@@ -47,6 +49,7 @@ class FrameSchedule:
         self.malformed = 0
         self._reported: bool | None = None  # locked at the last record
         self._report_due = 0.0
+        self._acquired = threading.Event()  # enough frames came for a lock
 
     @property
     def locking(self) -> bool:
@@ -72,6 +75,20 @@ class FrameSchedule:
         if lock is not None:
             with self._guard:
                 lock.on_frame(number, frame_time, arrival)
+                acquired = lock.frames >= ACQUIRE_FRAMES
+            if acquired and not self._acquired.is_set():
+                self._acquired.set()
+
+    def wait_acquired(self, timeout_s: float) -> bool:
+        """Before tick 0: wait until enough frames came for a lock, at most ``timeout_s`` [s].
+
+        The agents wait for their first pose before they arm, but the manager's own frame
+        clock needs :data:`~hilswarm.orchestrator.frame_lock.ACQUIRE_FRAMES` frames to find
+        the phase: a run that starts sooner would send its first ticks free. ``True`` at once
+        without a frame lock; ``False`` when the frames did not come (the ticks then start
+        free, and the ``frame_lock`` record says so).
+        """
+        return self.lock is None or self._acquired.wait(timeout_s)
 
     def start(self, t0: float) -> None:
         """Tick 0's grid point is ``t0`` [s, manager clock]."""

@@ -55,7 +55,7 @@ from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.agents.tick_engine import is_warmup, start_lead
 from hilswarm.orchestrator.experiment import Experiment
-from hilswarm.orchestrator.frame_schedule import FrameSchedule
+from hilswarm.orchestrator.frame_schedule import FRAME_ACQUIRE_WAIT_S, FrameSchedule
 from hilswarm.orchestrator.record_feed import RecordFeed
 from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink
 from hilswarm.orchestrator.recorder import Recorder
@@ -568,6 +568,11 @@ class InstanceManager:
         tick, feed = self._tick, self._feed
         with self._lock:
             tick.recount()
+        if realtime and not self._frames.wait_acquired(FRAME_ACQUIRE_WAIT_S):
+            logger.warning(
+                "no mocap frames within %g s: the first ticks run on the free clock",
+                FRAME_ACQUIRE_WAIT_S,
+            )
         self._publish_state("running")
         start = clock()
         clocked = self.self_clocked

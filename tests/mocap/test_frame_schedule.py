@@ -69,3 +69,17 @@ def test_a_malformed_frame_clock_is_counted_and_warned_once(
     assert sum("mocap frame clock dropped" in r.getMessage() for r in caplog.records) == 1
     schedule.start(0.0)
     assert schedule.due(5, 1.2) == pytest.approx(0.05)  # nothing locked on them
+
+
+def test_tick_0_waits_for_the_frames_that_set_the_lock() -> None:
+    """Before tick 0 the manager waits (bounded) until enough frames came for a lock: a run
+    whose agents armed quickly would otherwise send its first ticks free."""
+    assert FrameSchedule(DT, None, realtime=True).wait_acquired(0.0)  # no lock: no wait
+    schedule = FrameSchedule(DT, MocapSettings(system="sim", rate_hz=100.0), realtime=True)
+    assert not schedule.wait_acquired(0.01)  # no frames: the bound ends the wait
+    for n in range(ACQUIRE_FRAMES - 1):
+        schedule.on_frame(frame_clock.encode(n, 1.0 + n * P), 1.0005 + n * P)
+    assert not schedule.wait_acquired(0.0)
+    n = ACQUIRE_FRAMES - 1
+    schedule.on_frame(frame_clock.encode(n, 1.0 + n * P), 1.0005 + n * P)
+    assert schedule.wait_acquired(0.0)
