@@ -132,9 +132,14 @@ class FrameLock:
         self._offset = offset
         self.frames += 1
 
+    @property
+    def acquired(self) -> bool:
+        """Enough frames came since the estimator (re)started to estimate the phase."""
+        return self.frames >= ACQUIRE_FRAMES
+
     def locked(self, now: float) -> bool:
         """The estimate holds at ``now`` [s, manager clock]: enough frames, the last recent."""
-        return self.frames >= ACQUIRE_FRAMES and now - self._last_arrival <= self.timeout_s
+        return self.acquired and now - self._last_arrival <= self.timeout_s
 
     @property
     def offset_s(self) -> float:

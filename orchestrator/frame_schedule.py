@@ -18,7 +18,7 @@ from typing import Any
 
 from hilswarm.agents import bus
 from hilswarm.agents.mocap import frame_clock
-from hilswarm.orchestrator.frame_lock import ACQUIRE_FRAMES, FrameLock, TickClock
+from hilswarm.orchestrator.frame_lock import FrameLock, TickClock
 
 logger = logging.getLogger(__name__)
 
@@ -75,7 +75,7 @@ class FrameSchedule:
         if lock is not None:
             with self._guard:
                 lock.on_frame(number, frame_time, arrival)
-                acquired = lock.frames >= ACQUIRE_FRAMES
+                acquired = lock.acquired
             if acquired and not self._acquired.is_set():
                 self._acquired.set()
 
@@ -83,10 +83,10 @@ class FrameSchedule:
         """Before tick 0: wait until enough frames came for a lock, at most ``timeout_s`` [s].
 
         The agents wait for their first pose before they arm, but the manager's own frame
-        clock needs :data:`~hilswarm.orchestrator.frame_lock.ACQUIRE_FRAMES` frames to find
-        the phase: a run that starts sooner would send its first ticks free. ``True`` at once
-        without a frame lock; ``False`` when the frames did not come (the ticks then start
-        free, and the ``frame_lock`` record says so).
+        clock needs a few frames to find the phase (:attr:`FrameLock.acquired`): a run that
+        starts sooner would send its first ticks free. ``True`` at once without a frame
+        lock; ``False`` when the frames did not come (the ticks then start free, and the
+        ``frame_lock`` record says so).
         """
         return self.lock is None or self._acquired.wait(timeout_s)
 
