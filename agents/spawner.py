@@ -51,7 +51,7 @@ from hilswarm.agents.errors import HilswarmError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ForkServer", "ForkedProcess", "SpawnError", "main"]
+__all__ = ["ForkServer", "ForkedProcess", "SpawnError", "main", "with_import_paths"]
 
 
 def agent_preload() -> tuple[str, ...]:
@@ -62,6 +62,12 @@ def agent_preload() -> tuple[str, ...]:
     # simulated Frisbee and blimp would otherwise import it after its fork.
     lazy = ("hilswarm.agents.sim.mocap",)
     return ("hilswarm.agents.agent", *sorted(modules), *lazy)
+
+
+def with_import_paths(pythonpath: str, folders: Sequence[str]) -> str:
+    """A ``PYTHONPATH`` value with ``folders`` first, then the entries of ``pythonpath``."""
+    inherited = [p for p in pythonpath.split(os.pathsep) if p]
+    return os.pathsep.join([*folders, *inherited])
 
 
 #: Bound on the server's answer to one request [s].
@@ -266,8 +272,7 @@ def _run_child(request: Mapping[str, Any], keep: Sequence[int]) -> int:
     folders = [str(folder) for folder in request.get("path", ())]
     if folders:  # as the PYTHONPATH of an agent started with ``python -m``
         sys.path[:0] = folders
-        inherited = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
-        os.environ["PYTHONPATH"] = os.pathsep.join([*folders, *inherited])
+        os.environ["PYTHONPATH"] = with_import_paths(os.environ.get("PYTHONPATH", ""), folders)
     argv = [str(a) for a in request["argv"]]
     sys.argv = [str(request["module"]), *argv]
     try:

@@ -25,7 +25,7 @@ from types import TracebackType
 
 from hilswarm.agents.agent import AgentConfig
 from hilswarm.agents.errors import HilswarmError
-from hilswarm.agents.spawner import ForkedProcess, ForkServer, SpawnError
+from hilswarm.agents.spawner import ForkedProcess, ForkServer, SpawnError, with_import_paths
 from hilswarm.orchestrator.experiment import Experiment
 
 logger = logging.getLogger(__name__)
@@ -142,8 +142,7 @@ class AgentLauncher:
         paths first on its PYTHONPATH."""
         env = dict(self.env)
         if self.import_paths:
-            inherited = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
-            env["PYTHONPATH"] = os.pathsep.join([*self.import_paths, *inherited])
+            env["PYTHONPATH"] = with_import_paths(env.get("PYTHONPATH", ""), self.import_paths)
         return env
 
     def prepare(self) -> None:
