@@ -61,6 +61,7 @@ import json
 import math
 import os
 import re
+import resource
 import select
 import signal
 import subprocess
@@ -113,14 +114,16 @@ def percentile_ms(values: np.ndarray, q: float) -> float | None:
 
 def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float,
                     seconds: float, locked: bool = True, lag_ms: float | None = None,
-                    pose_wait_ms: float | None = None) -> str:  # fmt: skip
+                    pose_wait_ms: float | None = None,
+                    tick_frames_only: bool = False) -> str:  # fmt: skip
     """The experiment: ``agents`` Frisbee bots in a lead/follow chain, poses from ``sim``.
 
     Agent ``a00`` drives a 1 m square of waypoints; agent ``aNN`` follows ``a(NN-1)`` at 0.3 m
     (the demo ``graphs/lead_follow_mocap.toml``, longer). Camera noise as in the demo, no
     simulated camera latency and no dropouts: the figures are the software path's. ``locked``:
     the ticks in step with the frames (``[mocap] tick_lock``, the default), ``lag_ms`` its
-    ``tick_lag_ms``, ``pose_wait_ms`` the agents' ``pose_wait_ms`` (``None``: the defaults).
+    ``tick_lag_ms``, ``pose_wait_ms`` the agents' ``pose_wait_ms`` (``None``: the defaults),
+    ``tick_frames_only`` the mocap process's ``tick_frames_only``.
     """
     names = [f"a{i:02d}" for i in range(agents)]
     rows = [[1 if j == i - 1 else 0 for j in range(agents)] for i in range(agents)]
@@ -143,6 +146,7 @@ def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float
         f"tick_lock = {'true' if locked else 'false'}",
         *([] if lag_ms is None else [f"tick_lag_ms = {lag_ms!r}"]),
         *([] if pose_wait_ms is None else [f"pose_wait_ms = {pose_wait_ms!r}"]),
+        *(["tick_frames_only = true"] if tick_frames_only else []),
         "",
         "[mocap.sim]",
         "noise_std_m = 0.002",
@@ -195,6 +199,14 @@ def descendants(pid: int) -> list[int]:
             found.append(child)
             todo.append(child)
     return found
+
+
+def children_cpu_s() -> float:
+    """CPU time [s] (user + system) of this process's waited-for descendants so far: after a
+    ``hilswarm run`` ends, its own and that of every process it started and reaped (agents,
+    mocap process and simulator, recorder)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def run_experiment(folder: Path, experiment: Path, seconds: float) -> tuple[int, Path, str]:
@@ -266,7 +278,8 @@ def ticks_locked(out: Path) -> float | None:
 
 def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate_hz: float,
                        *, locked: bool = True, lag_ms: float | None = None,
-                       pose_wait_ms: float | None = None) -> dict[str, Any]:  # fmt: skip
+                       pose_wait_ms: float | None = None,
+                       tick_frames_only: bool = False) -> dict[str, Any]:  # fmt: skip
     """One ``hilswarm run`` at mocap rate ``rate_hz``: frame time -> controller figures."""
     load = load_1min()
     with tempfile.TemporaryDirectory(prefix="mocap_latency-") as tmp:
@@ -275,11 +288,14 @@ def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate
         experiment.write_text(
             experiment_text(agents=agents, mocap_rate_hz=rate_hz,
                             control_rate_hz=control_rate_hz, seconds=WARMUP_S + seconds,
-                            locked=locked, lag_ms=lag_ms, pose_wait_ms=pose_wait_ms)
+                            locked=locked, lag_ms=lag_ms, pose_wait_ms=pose_wait_ms,
+                            tick_frames_only=tick_frames_only)
         )  # fmt: skip
         began = time.monotonic()
+        cpu_before = children_cpu_s()
         status, out, tail = run_experiment(folder, experiment, WARMUP_S + seconds)
         wall = time.monotonic() - began
+        cpu = children_cpu_s() - cpu_before
         latency, delivery, ticks, lost = controller_latencies(out, agents)
         locked_fraction = ticks_locked(out)
     period = 1.0 / rate_hz
@@ -318,6 +334,8 @@ def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate
         "tick_lag_ms": round(settings.tick_lag_s * 1e3, 3) if locked else None,
         "ticks_locked": locked_fraction,
         "pose_wait_ms": round(settings.pose_wait_s * 1e3, 3),
+        "tick_frames_only": tick_frames_only,
+        "run_cpu_s": round(cpu, 2),
         "load_1min": load,
         "run_exit": status,
         "run_wall_s": round(wall, 1),
@@ -463,6 +481,11 @@ def main(argv: list[str] | None = None) -> int:
         help="[mocap] pose_wait_ms of the agents (default: the experiment default; 0: no wait)",
     )
     parser.add_argument(
+        "--tick-frames-only",
+        action="store_true",
+        help="[mocap] tick_frames_only = true: only the poses of the frames the ticks use",
+    )
+    parser.add_argument(
         "--no-subscriber",
         action="store_true",
         help="skip the subscriber-level figure (mocap path without a run)",
@@ -480,7 +503,7 @@ def main(argv: list[str] | None = None) -> int:
     for agents, rate in ((n, r) for n in counts for r in args.rates):
         result = measure_controller(
             rate, agents, seconds, args.control_rate, locked=not args.free, lag_ms=args.lag_ms,
-            pose_wait_ms=args.pose_wait_ms,
+            pose_wait_ms=args.pose_wait_ms, tick_frames_only=args.tick_frames_only,
         )  # fmt: skip
         tail = result.pop("_tail")
         subscriber: dict[str, Any] = {
@@ -512,6 +535,11 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"  of which the delivery, frame time -> the pose's arrival at the agent (recorded): "
             f"p50 {result['delivery_p50_ms']} ms, p99 {result['delivery_p99_ms']} ms"
+        )
+        print(
+            f"  CPU of the run and every process it started: {result['run_cpu_s']} s in "
+            f"{result['run_wall_s']} s; poses of "
+            + ("the frames the ticks use" if args.tick_frames_only else "every frame on the bus")
         )
         if not args.no_subscriber:
             print(

@@ -75,10 +75,11 @@ VIEWER_GRANTS = Grants(subscribe=("**",), watch_tokens=("alive/*",))
 MOCAP = "mocap"
 #: The motion-capture processes: publish poses under ``mocap/``, their status and the frame
 #: clock (read by the manager, which the router does not filter, and viewers); the simulator
-#: hears the simulated plants' true poses.
+#: hears the simulated plants' true poses; the mocap process hears the tick key (the manager's
+#: schedule says which frames the ticks use, :mod:`hilswarm.agents.mocap.decimation`).
 MOCAP_GRANTS = Grants(
     put=("mocap/**", "mocap_status", "mocap_clock"),
-    subscribe=("mocap_truth/**",),
+    subscribe=("mocap_truth/**", "tick"),
     tokens=("alive/_mocap",),
 )
 #: User name of the XBee gateway principal.

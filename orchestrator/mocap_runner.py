@@ -45,6 +45,22 @@ def describe_status(status: dict[str, Any]) -> str:
     return f"the system lists: {listed}; visible: {visible}"
 
 
+def describe_frames(status: dict[str, Any]) -> str | None:
+    """One line for the run's end: frames the mocap process handled, skipped (it fell behind)
+    and, with ``tick_frames_only``, whose poses it published; ``None`` without counts."""
+    frames = status.get("frames")
+    if not isinstance(frames, int):
+        return None
+    text = f"mocap: {frames} frames"
+    skipped = status.get("frames_skipped")
+    if isinstance(skipped, int) and skipped:
+        text += f", {skipped} skipped (the mocap process fell behind)"
+    published = status.get("frames_published")
+    if isinstance(published, int) and published < frames:
+        text += f"; poses published for {published} of them (tick_frames_only)"
+    return text
+
+
 class MocapRunner:
     """See the module docstring.
 

@@ -255,6 +255,9 @@ class MocapSection(_Table):
     pose_wait_ms: float | None = Field(None, ge=0.0, le=1000.0)
     """With tick_lock: a sense whose frame's pose is not in yet waits for it at most this long
     [ms], under one frame period (default 0: never waits)."""
+    tick_frames_only: bool = False
+    """In a self-clocked run, publish only the poses of the frames the ticks use and a
+    keep-alive (less CPU; default: every frame's)."""
     sim: MocapSimSection | None = None
     """system = "sim" only: the simulated cameras."""
 

@@ -14,6 +14,7 @@
     # tick_lock = true      # realtime ticks in step with the frames (docs/mocap.md)
     # tick_lag_ms = 2.0     # a tick this long after its frame reaches the host [ms]
     # pose_wait_ms = 1.5    # a sense waits at most this long for an overdue pose [ms] (0)
+    # tick_frames_only = false  # only the poses of the frames the ticks use (less CPU)
 
     [mocap.sim]             # system = "sim" only: what the simulated cameras do
     noise_std_m = 0.002
@@ -77,6 +78,7 @@ class MocapSettings:
     tick_lock: bool = True
     tick_lag_ms: float | None = None
     pose_wait_ms: float | None = None
+    tick_frames_only: bool = False
     sim: SimCameras = field(default_factory=SimCameras)
 
     @property

@@ -12,6 +12,8 @@ mocap_runner`). It
 3. per frame and body: maps the system's convention into the world frame (:mod:`.frames`),
    runs the body's filter (:mod:`.filter`), counts occluded frames, and publishes
    (:mod:`.message`); bodies the experiment does not use are not published;
+   — with ``tick_frames_only`` in a self-clocked run only the frames its ticks can use, and a
+   keep-alive (:mod:`.decimation`: it hears the manager's schedule on the tick key);
 4. after the poses of a frame, puts the frame clock (``mocap_clock``: frame number, frame time
    on this host's CLOCK_MONOTONIC, :mod:`.frame_clock`), which the instance manager locks the
    realtime ticks to;
@@ -49,6 +51,7 @@ from hilswarm.agents.mocap.clients import (
     make_client,
 )
 from hilswarm.agents.mocap.config import MocapSettings
+from hilswarm.agents.mocap.decimation import PoseDecimator, TickSchedule
 from hilswarm.agents.mocap.filter import FilterBank, FilterTuning
 from hilswarm.agents.mocap.frames import convention
 
@@ -58,6 +61,8 @@ logger = logging.getLogger(__name__)
 MOCAP_NAME = "_mocap"
 #: Zenoh principal (user name) of the mocap process where the bus has access control.
 PRINCIPAL = "mocap"
+#: Frames after a tick's due time whose poses are still published (:mod:`.decimation`).
+AFTER_FRAMES = 0
 #: Period of the status message while streaming [s].
 STATUS_PERIOD_S = 1.0
 #: QoS of pose messages: newest first, never blocking the frame loop on a slow subscriber.
@@ -118,9 +123,16 @@ class MocapProcess:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._status_pub: zenoh.Publisher | None = None
         self._clock_pub: zenoh.Publisher | None = None
+        self._tick_sub: zenoh.Subscriber | None = None
         self._status_due = 0.0
         self._last_state: tuple[Any, ...] = ()
         self._lock = threading.Lock()
+        # a keep-alive at least twice per hold_s, so a waiting agent never counts its body lost
+        self.decimator = PoseDecimator(
+            1.0 / settings.rate_hz,
+            keep_alive=max(1, settings.hold_frames // 2) if settings.tick_frames_only else 1,
+            after_frames=AFTER_FRAMES,
+        )
         self.frames = 0
         self.skipped = 0
 
@@ -138,6 +150,7 @@ class MocapProcess:
             "missing": [n for n in self.bodies if n not in visible],
             "frames": self.frames,
             "frames_skipped": self.skipped,
+            "frames_published": self.decimator.published,
             "detail": detail,
         }
         if self._status_pub is not None:
@@ -172,21 +185,42 @@ class MocapProcess:
             [raw, estimates, self.filters.velocity, self.filters.innovation], axis=1
         ).tolist()
         number, time_s, received = frame.number, frame.time_s, frame.received_s
-        for i, name in enumerate(self.bodies):
-            publisher = self._publishers.get(name)
-            if publisher is not None:
-                publisher.put(
-                    message.encode_row(
-                        number, time_s, received, latency, occluded=occluded[i], values=rows[i]
+        host_time = received - latency  # the frame's time on this host's clock
+        if self.decimator.wanted(host_time):
+            for i, name in enumerate(self.bodies):
+                publisher = self._publishers.get(name)
+                if publisher is not None:
+                    publisher.put(
+                        message.encode_row(
+                            number, time_s, received, latency, occluded=occluded[i], values=rows[i]
+                        )
                     )
-                )
+        if self._tick_sub is not None and self.decimator.ticked:
+            self._tick_sub.undeclare()  # tick messages may come at any rate: no more needed
+            self._tick_sub = None
         clock_pub = self._clock_pub
-        if clock_pub is not None:  # the frame's time on this host's clock: see frame_clock
-            clock_pub.put(frame_clock.encode(number, received - latency))
+        if clock_pub is not None:  # see frame_clock
+            clock_pub.put(frame_clock.encode(number, host_time))
         self.frames += 1
         self.skipped += frame.skipped
         if self._clock() >= self._status_due:
             self.publish_status("streaming")
+
+    def on_tick_key(self, sample: zenoh.Sample) -> None:
+        """A message on the tick key (a Zenoh thread): the manager's schedule of a
+        self-clocked run is handed to the decimator; a tick message means a run driven by
+        tick messages, whose frames are all published (:mod:`.decimation`)."""
+        payload = sample.payload.to_bytes()
+        if not bus.is_schedule(payload):
+            self.decimator.every_frame()  # the frame loop then stops listening
+            return
+        try:
+            schedule = bus.decode_schedule(payload)
+        except bus.BusMessageError:
+            return  # not the manager's (it alone may put here): ignored
+        self.decimator.schedule = TickSchedule(
+            schedule.first, schedule.last, schedule.t0, schedule.dt
+        )
 
     # -- main --------------------------------------------------------------------------------
 
@@ -202,6 +236,8 @@ class MocapProcess:
             self._status_pub = session.declare_publisher(self.keys.mocap_status, **bus.DATA_QOS)
             self._clock_pub = session.declare_publisher(self.keys.mocap_clock, **POSE_QOS)
             entities.append(session.liveliness().declare_token(self.keys.alive(MOCAP_NAME)))
+            if self.settings.tick_frames_only:  # the schedule says which frames to publish
+                self._tick_sub = session.declare_subscriber(self.keys.tick, self.on_tick_key)
             self.publish_status("connecting", f"{self.settings.system} at {self.settings.host}")
             try:
                 self.client.run(self.on_frame, lambda: self.publish_status("streaming"))
@@ -214,10 +250,15 @@ class MocapProcess:
                 self.publish_status("lost", str(exc))
                 return 1
             self.publish_status("stopped")
+            logger.info(
+                "stopped after %d frames; poses published for %d of them",
+                self.frames,
+                self.decimator.published,
+            )
             return 0
         finally:
             self._publishers.clear()
-            self._status_pub = self._clock_pub = None
+            self._status_pub = self._clock_pub = self._tick_sub = None
             entities.clear()
             session.close()
 

@@ -52,7 +52,7 @@ from hilswarm.orchestrator.manager import (
     InstanceManager,
     ManagerError,
 )
-from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner
+from hilswarm.orchestrator.mocap_runner import MocapError, MocapRunner, describe_frames
 from hilswarm.orchestrator.output_paths import check_output_file
 from hilswarm.orchestrator.recorder_process import RecorderProcess
 from hilswarm.orchestrator.run_registry import RunEntry, RunRecord
@@ -339,7 +339,11 @@ def _run(
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     summary: RunSummary | None = None
     error = ""
-    mocap = MocapRunner(experiment, [], run_id=run_id) if experiment.mocap is not None else None
+    mocap = (
+        MocapRunner(experiment, [], run_id=run_id, verbose=max(0, args.verbose - 1))
+        if experiment.mocap is not None
+        else None
+    )
     try:
         if len(args.remote) < len(experiment.agents):  # agents of ours: their code imports now
             launcher.prepare()
@@ -431,6 +435,9 @@ def _run(
         summary.recording = recorder.report()
         print("recording: " + ", ".join(summary.recording.segments))
         print(summary.text())
+        frames = describe_frames(mocap.status) if mocap is not None else None
+        if frames is not None:
+            print(frames)
     else:
         print(f"recording: none ({out} not written: the run did not begin)")
     result = outcome.decide(summary, error=error, interrupted=interrupted)

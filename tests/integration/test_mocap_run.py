@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import signal
 from collections.abc import Iterator
 from pathlib import Path
@@ -72,6 +73,9 @@ def test_the_demo_runs_with_poses_through_the_real_client(
         assert np.all(delivery >= 0) and np.all(delivery <= latency), agent
     # The leader drove towards its first waypoint (1, 0): the pose loop closed.
     assert recording["/leader/y"][-1]["values"][0] > 0.2
+    # The mocap process's frames in the run's last lines; every frame's poses published.
+    frames = [line for line in run.output().splitlines() if line.startswith("mocap: ")]
+    assert frames and "poses published" not in frames[-1], run.output()
     # /<agent>/pose with Foxglove's well-known schema (the 3D panel's).
     schemas = {channel.topic: schema.name for schema, channel, _ in _raw(run.out)}
     assert schemas["/f1/pose"] == "foxglove.PoseInFrame"
@@ -110,6 +114,35 @@ def test_an_occluded_body_puts_its_agent_safe_with_lost_tracking(
     first_nan = ks[int(np.argmax(~np.all(np.isfinite(y), axis=1)))]
     assert 39 <= first_nan <= 60, first_nan  # up to 3 s: a starved simulator frames late
     assert np.all(np.isfinite(y[: ks.index(first_nan)]))  # tracked until then
+
+
+def test_with_tick_frames_only_fewer_poses_go_out_and_tracking_loss_is_unchanged(
+    runs: list[RunProcess], tmp_path: Path
+) -> None:
+    """``tick_frames_only``: the mocap process hears the manager's schedule through the run's
+    access rules and publishes only the frames the ticks use (and a keep-alive); an occlusion
+    still puts the agent safe at the same tick as with every frame (the test above)."""
+    experiment = variant(
+        tmp_path,
+        **{"dropout_frames = 3      # its length [frames] (held, well under hold_frames)":
+           "dropout_frames = 3\nocclusions = { frisbee2 = [1.5, 60.0] }",
+           "hold_frames = 50 ": "tick_frames_only = true\nhold_frames = 50 "},
+    )  # fmt: skip
+    run = RunProcess(tmp_path, experiment, "--duration", "8")
+    runs.append(run)
+    assert run.wait(RUN_TIMEOUT_S) == 1, run.output()  # on_agent_safe = "stop": ended early
+    recording = read_recording(run.out)
+    lost = "lost tracking: body 'frisbee2' not seen for"
+    assert any(s == "safe" and lost in d for s, d in statuses(recording, "f1"))
+    y = outputs(recording, "f1")
+    ks = [m["k"] for m in recording["/f1/y"]]
+    first_nan = ks[int(np.argmax(~np.all(np.isfinite(y), axis=1)))]
+    assert 39 <= first_nan <= 60, first_nan
+    assert np.all(np.isfinite(y[: ks.index(first_nan)]))
+    # 100 Hz frames, 20 Hz ticks: two frames in five for the ticks, a keep-alive every 25th.
+    line = next(x for x in run.output().splitlines() if x.startswith("mocap: "))
+    frames, published = (int(n) for n in re.findall(r"(\d+) frames.*for (\d+) of them", line)[0])
+    assert 0.3 * frames < published < 0.6 * frames, line
 
 
 def test_the_mocap_server_lost_stops_the_run_and_no_stale_pose_is_used(

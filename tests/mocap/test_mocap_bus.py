@@ -7,6 +7,8 @@ the real client (qtm-rt) run in this process on threads; every wait is bounded.
 
 from __future__ import annotations
 
+import itertools
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -58,10 +60,14 @@ class Rig:
         neighbours: dict[str, str] | None = None,
         pose_wait_s: float = 0.0,
         clock: Callable[[], float] = time.monotonic,
+        tick_frames_only: bool = False,
     ) -> None:
         self.sim = QtmSimulator(sim)
         self.sim.start()
-        settings = MocapSettings(system="sim", rate_hz=sim.rate_hz, hold_frames=hold_frames)
+        settings = MocapSettings(
+            system="sim", rate_hz=sim.rate_hz, hold_frames=hold_frames,
+            tick_frames_only=tick_frames_only,
+        )  # fmt: skip
         self.process = MocapProcess(
             settings, EXPERIMENT, sim.bodies, endpoints,
             client=QualisysClient("127.0.0.1", self.sim.port),
@@ -254,4 +260,84 @@ def test_a_sense_waits_bounded_for_an_overdue_pose(router: list[str]) -> None:
         assert source.pose_wait_timeouts == 1
         assert not rig.lost
     finally:
+        rig.close()
+
+
+def test_with_a_schedule_only_the_ticks_frames_and_a_keep_alive_are_published(
+    router: list[str],
+) -> None:
+    """``tick_frames_only``: given the manager's schedule of a self-clocked run on the tick
+    key, the process publishes the frames its ticks use (the last one before a tick's due
+    time and the one before it) and at least every ``hold_frames // 2``-th frame; a tick
+    message (a run driven by them) brings every frame back. Frames from the real simulator
+    through qtm-rt."""
+    rate, hold = 100.0, 10
+    period, keep_alive = 1 / rate, hold // 2
+    rig = Rig(
+        router, SimSettings(bodies=("f1",), rate_hz=rate), hold_frames=hold,
+        tick_frames_only=True,
+    )  # fmt: skip
+    keys = bus.BusKeys(EXPERIMENT)
+    got: list[message.BodyPose] = []
+    sub = rig.session.declare_subscriber(
+        keys.mocap("f1"),
+        zenoh.handlers.Callback(lambda s: got.append(message.decode(s.payload.to_bytes()))),
+    )
+    tick_pub = rig.session.declare_publisher(keys.tick)
+    try:
+        rig.sim.set_truth("f1", np.zeros(6))
+        rig.source.wait_first()
+        wait_for(lambda: len(got) >= 5, "the first poses")
+        numbers = [m.frame for m in got[-5:]]
+        assert numbers == list(range(numbers[0], numbers[0] + 5))  # no schedule: every frame
+        # Ticks every 20 frames (5 Hz), each due 3 ms after a frame (the simulator stamps
+        # frames with this host's clock, the one the schedule uses).
+        dt, t0 = 20 * period, got[-1].frame_time_s + 0.003
+        tick_pub.put(bus.encode_schedule(bus.ScheduleMessage(0, 10_000, t0, dt)))
+        wait_for(lambda: rig.process.decimator.decimating, "the schedule to reach the process")
+        start = len(got) + 2  # poses on their way when it came may follow
+        wait_for(lambda: len(got) >= start + 16, "poses under the schedule")
+        kept = got[start:]
+        for before, m in itertools.pairwise(kept):
+            due = t0 + math.ceil((m.frame_time_s - t0) / dt) * dt  # the next tick's
+            for_a_tick = due - m.frame_time_s < 2 * period
+            assert for_a_tick or m.frame - before.frame == keep_alive, (m.frame, before.frame)
+        gaps = [b.frame - a.frame for a, b in itertools.pairwise(kept)]
+        assert max(gaps) <= keep_alive and 1 in gaps  # keep-alives and a tick's two frames
+        assert rig.process.decimator.left_out > 0
+        assert not rig.lost  # never counted lost while frames were left out
+        # A tick message: a run driven by them gets every frame again.
+        tick_pub.put(bus.encode_tick(bus.TickMessage(k=0, t=0.0, missing=(), realtime=True)))
+        wait_for(lambda: rig.process.decimator.ticked, "the tick message to reach the process")
+        start = len(got) + 2
+        wait_for(lambda: len(got) >= start + 12, "every frame again")
+        numbers = [m.frame for m in got[start:]]
+        assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))
+    finally:
+        del sub, tick_pub
+        rig.close()
+
+
+def test_by_default_every_frame_is_published_whatever_the_schedule(router: list[str]) -> None:
+    rig = Rig(router, SimSettings(bodies=("f1",), rate_hz=100.0), hold_frames=10)
+    keys = bus.BusKeys(EXPERIMENT)
+    got: list[int] = []
+    sub = rig.session.declare_subscriber(
+        keys.mocap("f1"),
+        zenoh.handlers.Callback(lambda s: got.append(message.decode(s.payload.to_bytes()).frame)),
+    )
+    tick_pub = rig.session.declare_publisher(keys.tick)
+    try:
+        rig.sim.set_truth("f1", np.zeros(6))
+        rig.source.wait_first()
+        wait_for(lambda: len(got) >= 2, "the first poses")
+        t0 = time.monotonic() + 0.003
+        tick_pub.put(bus.encode_schedule(bus.ScheduleMessage(0, 10_000, t0, 0.2)))
+        start = len(got)
+        wait_for(lambda: len(got) >= start + 40, "40 more poses")
+        numbers = got[start:]
+        assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))
+        assert rig.process.decimator.left_out == 0
+    finally:
+        del sub, tick_pub
         rig.close()
