@@ -264,7 +264,7 @@ def test_a_sense_waits_bounded_for_an_overdue_pose(router: list[str]) -> None:
 
 
 def test_with_a_schedule_only_the_ticks_frames_and_a_keep_alive_are_published(
-    router: list[str],
+    router: list[str], caplog: pytest.LogCaptureFixture
 ) -> None:
     """``tick_frames_only``: given the manager's schedule of a self-clocked run on the tick
     key, the process publishes the frames its ticks use (the last one before a tick's due
@@ -309,6 +309,8 @@ def test_with_a_schedule_only_the_ticks_frames_and_a_keep_alive_are_published(
         # A tick message: a run driven by them gets every frame again.
         tick_pub.put(bus.encode_tick(bus.TickMessage(k=0, t=0.0, missing=(), realtime=True)))
         wait_for(lambda: rig.process.decimator.ticked, "the tick message to reach the process")
+        wait_for(lambda: rig.process._tick_sub is None, "the process to stop hearing ticks")
+        assert "tick_frames_only has no effect in this run" in caplog.text
         start = len(got) + 2
         wait_for(lambda: len(got) >= start + 12, "every frame again")
         numbers = [m.frame for m in got[start:]]
