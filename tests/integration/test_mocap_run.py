@@ -139,10 +139,12 @@ def test_with_tick_frames_only_fewer_poses_go_out_and_tracking_loss_is_unchanged
     first_nan = ks[int(np.argmax(~np.all(np.isfinite(y), axis=1)))]
     assert 39 <= first_nan <= 60, first_nan
     assert np.all(np.isfinite(y[: ks.index(first_nan)]))
-    # 100 Hz frames, 20 Hz ticks: two frames in five for the ticks, a keep-alive every 25th.
+    # 100 Hz frames, 20 Hz ticks: while the ticks run, two frames in five go out for them (and
+    # a keep-alive every 25th), three in five are left out; before the first schedule (the
+    # start, as long as it takes on a busy machine) every frame goes out.
     line = next(x for x in run.output().splitlines() if x.startswith("mocap: "))
     frames, published = (int(n) for n in re.findall(r"(\d+) frames.*for (\d+) of them", line)[0])
-    assert 0.3 * frames < published < 0.6 * frames, line
+    assert frames - published >= 0.3 * 5 * len(ks), (line, len(ks))
 
 
 def test_the_mocap_server_lost_stops_the_run_and_no_stale_pose_is_used(
