@@ -288,22 +288,28 @@ def test_with_a_schedule_only_the_ticks_frames_and_a_keep_alive_are_published(
         rig.sim.set_truth("f1", np.zeros(6))
         rig.source.wait_first()
         wait_for(lambda: len(got) >= 5, "the first poses")
-        numbers = [m.frame for m in got[-5:]]
-        assert numbers == list(range(numbers[0], numbers[0] + 5))  # no schedule: every frame
+        assert consecutive([m.frame for m in got[-5:]], rig)  # no schedule: every frame
         # Ticks every 20 frames (5 Hz), each due 3 ms after a frame (the simulator stamps
         # frames with this host's clock, the one the schedule uses).
         dt, t0 = 20 * period, got[-1].frame_time_s + 0.003
         tick_pub.put(bus.encode_schedule(bus.ScheduleMessage(0, 10_000, t0, dt)))
         wait_for(lambda: rig.process.decimator.decimating, "the schedule to reach the process")
         start = len(got) + 2  # poses on their way when it came may follow
-        wait_for(lambda: len(got) >= start + 16, "poses under the schedule")
+        wait_for(lambda: len(got) >= start + 30, "poses under the schedule (~5 ticks)")
         kept = got[start:]
-        for before, m in itertools.pairwise(kept):
-            due = t0 + math.ceil((m.frame_time_s - t0) / dt) * dt  # the next tick's
-            for_a_tick = due - m.frame_time_s < 2 * period
-            assert for_a_tick or m.frame - before.frame == keep_alive, (m.frame, before.frame)
+
+        def for_a_tick(m: message.BodyPose) -> bool:  # the next tick is due within 2 frames
+            due = t0 + math.ceil((m.frame_time_s - t0) / dt) * dt
+            return due - m.frame_time_s < 2 * period
+
+        # The others are the keep-alives: one in keep_alive frames.
+        others = [m.frame for m in kept if not for_a_tick(m)]
+        span = kept[-1].frame - kept[0].frame
+        assert 1 <= len(others) <= span / keep_alive + 1, (others, span)
         gaps = [b.frame - a.frame for a, b in itertools.pairwise(kept)]
-        assert max(gaps) <= keep_alive and 1 in gaps  # keep-alives and a tick's two frames
+        # at most keep_alive frames apart (plus frames the process skipped if it fell behind);
+        # a tick's two frames one apart
+        assert max(gaps) <= keep_alive + rig.process.skipped and 1 in gaps, gaps
         assert rig.process.decimator.left_out > 0
         assert not rig.lost  # never counted lost while frames were left out
         # A tick message: a run driven by them gets every frame again.
@@ -313,8 +319,7 @@ def test_with_a_schedule_only_the_ticks_frames_and_a_keep_alive_are_published(
         assert "tick_frames_only has no effect in this run" in caplog.text
         start = len(got) + 2
         wait_for(lambda: len(got) >= start + 12, "every frame again")
-        numbers = [m.frame for m in got[start:]]
-        assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))
+        assert consecutive([m.frame for m in got[start:]], rig)
     finally:
         del sub, tick_pub
         rig.close()
@@ -337,9 +342,15 @@ def test_by_default_every_frame_is_published_whatever_the_schedule(router: list[
         tick_pub.put(bus.encode_schedule(bus.ScheduleMessage(0, 10_000, t0, 0.2)))
         start = len(got)
         wait_for(lambda: len(got) >= start + 40, "40 more poses")
-        numbers = got[start:]
-        assert numbers == list(range(numbers[0], numbers[0] + len(numbers)))
+        assert consecutive(got[start:], rig)
         assert rig.process.decimator.left_out == 0
     finally:
         del sub, tick_pub
         rig.close()
+
+
+def consecutive(numbers: list[int], rig: Rig) -> bool:
+    """Every frame's pose in ``numbers`` (frame numbers, in order), but for frames the mocap
+    process skipped because it fell behind (a loaded machine)."""
+    gaps = [b - a for a, b in itertools.pairwise(numbers)]
+    return all(1 <= gap <= 1 + rig.process.skipped for gap in gaps)
