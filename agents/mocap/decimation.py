@@ -8,10 +8,9 @@ replaced by the next. Given the instance manager's schedule of a self-clocked ru
 ``first <= j <= last``, due at ``t0 + j * dt`` on this host's CLOCK_MONOTONIC), the mocap
 process publishes a frame's poses only when
 
-* a tick is due between ``after_frames`` frame periods before the frame's time and two frame
-  periods after it: the frame a tick is locked to, the one before it (a sense whose frame is
-  still on its way uses that one, or waits for its own, ``pose_wait_ms``), and ``after_frames``
-  frames after the due time (the newest pose for a sense that runs late); or
+* a tick is due less than two frame periods after the frame's time: the frame a tick is
+  locked to and the one before it (a sense whose frame is still on its way uses that one, or
+  waits for its own, ``pose_wait_ms``); or
 * it is the ``keep_alive``-th frame since the last one published (so an agent never goes
   ``hold_s`` without a message while it waits for its next tick or while the run is paused:
   tracking loss stays what it was, the count of occluded frames travels in each message).
@@ -28,23 +27,15 @@ host's CLOCK_MONOTONIC), the clock the manager locks its ticks to.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+
+from hilswarm.agents.bus import ScheduleMessage
 
 
-@dataclass(frozen=True, slots=True)
-class TickSchedule:
-    """The ticks of a self-clocked run: tick ``j`` (``first <= j <= last``) due at
-    ``t0 + j * dt`` [s, CLOCK_MONOTONIC]; ``dt`` [s] > 0."""
-
-    first: int
-    last: int
-    t0: float
-    dt: float
-
-    def next_due(self, after_s: float) -> float | None:
-        """When the first tick due at or after ``after_s`` [s] is due (``None``: none is)."""
-        j = max(self.first, math.ceil((after_s - self.t0) / self.dt))
-        return None if j > self.last else self.t0 + j * self.dt
+def next_due(schedule: ScheduleMessage, after_s: float) -> float | None:
+    """When the first tick of ``schedule`` due at or after ``after_s`` [s] is due (``None``:
+    none is)."""
+    j = max(schedule.first, math.ceil((after_s - schedule.t0) / schedule.dt))
+    return None if j > schedule.last else schedule.t0 + j * schedule.dt
 
 
 class PoseDecimator:
@@ -53,21 +44,17 @@ class PoseDecimator:
     Args:
         frame_period_s: the mocap system's frame period [s] (1 / rate).
         keep_alive: publish at least every ``keep_alive``-th frame (>= 1; 1: every frame).
-        after_frames: frames after a tick's due time still published (>= 0).
     """
 
-    def __init__(self, frame_period_s: float, *, keep_alive: int, after_frames: int = 0) -> None:
+    def __init__(self, frame_period_s: float, *, keep_alive: int) -> None:
         if not (math.isfinite(frame_period_s) and frame_period_s > 0):
             raise ValueError(f"frame_period_s must be > 0 [s], got {frame_period_s!r}")
         if keep_alive < 1:
             raise ValueError(f"keep_alive must be >= 1 [frames], got {keep_alive!r}")
-        if after_frames < 0:
-            raise ValueError(f"after_frames must be >= 0, got {after_frames!r}")
         self.frame_period_s = float(frame_period_s)
         self.keep_alive = int(keep_alive)
-        self.after_frames = int(after_frames)
-        #: The newest schedule (``None``: every frame is published).
-        self.schedule: TickSchedule | None = None
+        #: The manager's newest schedule (``None``: every frame is published).
+        self.schedule: ScheduleMessage | None = None
         #: ``True`` once the run turned out to be driven by tick messages (every frame).
         self.ticked = False
         self._unpublished = 0  # frames since the last one published
@@ -99,6 +86,5 @@ class PoseDecimator:
         schedule = self.schedule
         if schedule is None or self.ticked or self._unpublished + 1 >= self.keep_alive:
             return True
-        period = self.frame_period_s
-        due = schedule.next_due(frame_time_s - self.after_frames * period)
-        return due is not None and due < frame_time_s + 2 * period
+        due = next_due(schedule, frame_time_s)
+        return due is not None and due < frame_time_s + 2 * self.frame_period_s

@@ -51,7 +51,7 @@ from hilswarm.agents.mocap.clients import (
     make_client,
 )
 from hilswarm.agents.mocap.config import MocapSettings
-from hilswarm.agents.mocap.decimation import PoseDecimator, TickSchedule
+from hilswarm.agents.mocap.decimation import PoseDecimator
 from hilswarm.agents.mocap.filter import FilterBank, FilterTuning
 from hilswarm.agents.mocap.frames import convention
 
@@ -61,8 +61,6 @@ logger = logging.getLogger(__name__)
 MOCAP_NAME = "_mocap"
 #: Zenoh principal (user name) of the mocap process where the bus has access control.
 PRINCIPAL = "mocap"
-#: Frames after a tick's due time whose poses are still published (:mod:`.decimation`).
-AFTER_FRAMES = 0
 #: Period of the status message while streaming [s].
 STATUS_PERIOD_S = 1.0
 #: QoS of pose messages: newest first, never blocking the frame loop on a slow subscriber.
@@ -131,7 +129,6 @@ class MocapProcess:
         self.decimator = PoseDecimator(
             1.0 / settings.rate_hz,
             keep_alive=max(1, settings.hold_frames // 2) if settings.tick_frames_only else 1,
-            after_frames=AFTER_FRAMES,
         )
         self.frames = 0
         self.skipped = 0
@@ -220,12 +217,9 @@ class MocapProcess:
             self.decimator.every_frame()  # the frame loop then stops listening
             return
         try:
-            schedule = bus.decode_schedule(payload)
+            self.decimator.schedule = bus.decode_schedule(payload)
         except bus.BusMessageError:
             return  # not the manager's (it alone may put here): ignored
-        self.decimator.schedule = TickSchedule(
-            schedule.first, schedule.last, schedule.t0, schedule.dt
-        )
 
     # -- main --------------------------------------------------------------------------------
 
