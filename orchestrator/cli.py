@@ -89,7 +89,39 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == command:
             _command_module(name).add_arguments(p)
+        _accept_verbose(p)
     return parser
+
+
+def _accept_verbose(parser: argparse.ArgumentParser) -> None:
+    """``-v`` after the command too (``hilswarm run x.toml -v``), and after its own
+    subcommand (``hilswarm xbee scan -v``)."""
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        dest=_VERBOSE_AFTER,
+        action="count",
+        default=0,
+        help="more log output (-vv: debug); the same as before the command",
+    )
+    for action in parser._actions:  # argparse lists a parser's subcommands only here
+        if isinstance(action, argparse._SubParsersAction):
+            for child in action.choices.values():
+                _accept_verbose(child)
+
+
+#: Where the command's own ``-v`` counts go; :func:`parse_arguments` adds them to ``verbose``.
+_VERBOSE_AFTER = "verbose_after_command"
+
+
+def parse_arguments(parser: argparse.ArgumentParser, args: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args(args)`` with every ``-v``, before the command and after it, counted
+    in ``verbose``."""
+    parsed = parser.parse_args(args)
+    parsed.verbose += getattr(parsed, _VERBOSE_AFTER, 0)
+    with contextlib.suppress(AttributeError):
+        delattr(parsed, _VERBOSE_AFTER)
+    return parsed
 
 
 def version_text() -> str:
@@ -184,7 +216,7 @@ def _command(
         except ImportError as exc:
             print(f"hilswarm: command {command!r} is not available: {exc}", file=sys.stderr)
             return 1
-        args = parser.parse_args(args_list)
+        args = parse_arguments(parser, args_list)
         logging.basicConfig(
             level=logging.WARNING - 10 * min(args.verbose, 2),
             format="%(asctime)s %(levelname)s %(name)s: %(message)s",

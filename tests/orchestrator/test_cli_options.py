@@ -209,6 +209,18 @@ def test_xbee_setup_settings_in_range_are_taken_as_written() -> None:
     assert (args.channel, args.pan_id, args.new_baud, args.baud) == (0x1A, 0xFFFF, 9600, 115200)
 
 
+def test_verbose_counts_before_and_after_the_command(capsys: pytest.CaptureFixture[str]) -> None:
+    from hilswarm.orchestrator.cli import build_parser, parse_arguments
+
+    assert parse_arguments(build_parser("check"), ["check", LEAD]).verbose == 0
+    assert parse_arguments(build_parser("check"), ["-v", "check", LEAD, "-v"]).verbose == 2
+    assert parse_arguments(build_parser("run"), ["run", LEAD, "-vv"]).verbose == 2
+    args = parse_arguments(build_parser("xbee"), ["xbee", "scan", "--port", "sim", "-v"])
+    assert args.verbose == 1 and not hasattr(args, "verbose_after_command")
+    assert main(["check", LEAD, "-v"]) == 0  # was "unrecognized arguments: -v"
+    assert "ok: lead_follow" in capsys.readouterr().out
+
+
 # -- mocap host names that do not resolve ---------------------------------------------------------
 
 
