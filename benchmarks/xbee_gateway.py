@@ -47,15 +47,14 @@ from hilswarm.agents import bus
 from hilswarm.agents.errors import BoardError
 from hilswarm.agents.link.board import BoardStatus, PinConfig, PinMode, TickReply
 from hilswarm.agents.link.sim_board import SimBoard
-from hilswarm.agents.xbee.air import AirParams, uart_s
 from hilswarm.agents.xbee.api_frames import ApiFrameDecoder, Rx64Packet, Tx64Request, encode_frame
 from hilswarm.agents.xbee.budget import (
     RobotTraffic,
-    bcast_frame_sizes,
     broadcast_budget,
     gateway_budget,
     section_size,
     tick_frame_sizes,
+    tick_latency,
 )
 from hilswarm.agents.xbee.config import GatewayConfig
 from hilswarm.agents.xbee.gateway import Gateway
@@ -167,35 +166,32 @@ def bcast_bound(rate_hz: float, reply_every: int) -> tuple[int, str]:
     return n, binding
 
 
+def _frisbees(n: int, reply_every: int = 1) -> list[RobotTraffic]:
+    request, reply = tick_frame_sizes(FRISBEE)
+    section = section_size(FRISBEE)
+    return [RobotTraffic(str(i), request, reply, section, reply_every) for i in range(n)]
+
+
+def unicast_tick_s(n: int) -> float:
+    """A unicast tick's fill and drain for ``n`` Frisbees [s] (the model of
+    :func:`~hilswarm.agents.xbee.budget.tick_latency`, without the host's allowance)."""
+    return tick_latency(gateway_budget(_frisbees(n), rate_hz=1.0)).radio_s
+
+
 def bcast_tick_s(n: int, reply_every: int) -> float:
-    """A broadcast tick's fill and drain [s] (model): the BCAST frames through the host UART and
-    the air, all of them through the robot's UART (its radio passes every broadcast on), the
-    reply's UART and packetization, then the tick's replies one after the other on the air and
-    the last one's RX frame on the host UART."""
-    _request, reply = tick_frame_sizes(FRISBEE)
-    p = AirParams()
-    frames = bcast_frame_sizes([section_size(FRISBEE)] * n)
-    replies = max(
-        sum(1 for i in range(n) if (k + i) % reply_every == 0) for k in range(reply_every)
-    )
-    return (
-        sum(uart_s(15 + f, 115200) + p.mean_broadcast_s(f) for f in frames)
-        + uart_s(sum(frames), 115200)
-        + uart_s(reply + p.packetization_chars, 115200)
-        + replies * p.mean_unicast_s(reply)
-        + uart_s(15 + reply, 115200)
-    )
+    """A broadcast tick's fill and drain [s] (model, :func:`tick_latency`): the BCAST frames
+    through the host UART and the air, all of them through the robot's UART, the reply's UART
+    and packetization, then the tick's replies one after the other on the air and the last
+    one's RX frame on the host UART."""
+    return tick_latency(broadcast_budget(_frisbees(n, reply_every), rate_hz=1.0)).radio_s
 
 
 def bcast_delivery_s(n: int) -> float:
-    """When the last robot has a tick's outputs (model) [s]: the BCAST frames through the host
-    UART and the air, and all of them through the robot's UART (what ``answer = "at_once"``
-    waits for: nothing else)."""
-    p = AirParams()
-    frames = bcast_frame_sizes([section_size(FRISBEE)] * n)
-    return sum(uart_s(15 + f, 115200) + p.mean_broadcast_s(f) for f in frames) + uart_s(
-        sum(frames), 115200
-    )
+    """When the last robot has a tick's outputs (model, :func:`tick_latency`) [s]: the BCAST
+    frames through the host UART and the air, and all of them through the robot's UART (what
+    ``answer = "at_once"`` waits for: nothing else)."""
+    budget = broadcast_budget(_frisbees(n), rate_hz=1.0)
+    return tick_latency(budget, answer="at_once").radio_s
 
 
 def bcast_latency_bound(rate_hz: float, reply_every: int) -> int:
@@ -475,18 +471,10 @@ def latency_bound(rate_hz: float) -> tuple[int, float]:
     on the host UART, the robot's UART both ways, its packetization timeout, the last RX frame
     and its TX status (the air alone is the throughput bound of :func:`bound`). Returns
     (N, fixed latency [s])."""
-
-    request, reply = tick_frame_sizes(FRISBEE)
-    p = AirParams()
-    fixed = (
-        uart_s(15 + request, 115200)
-        + uart_s(request, 115200)
-        + uart_s(reply, 115200)
-        + uart_s(p.packetization_chars, 115200)
-        + uart_s(15 + reply + 7, 115200)
-    )
-    per_robot = p.mean_unicast_s(request) + p.mean_unicast_s(reply)
-    return max(0, int((1.0 / rate_hz - fixed) // per_robot)), fixed
+    n = 0
+    while n < 255 and unicast_tick_s(n + 1) <= 1.0 / rate_hz:
+        n += 1
+    return n, 2 * unicast_tick_s(1) - unicast_tick_s(2)
 
 
 def bench_capacity(endpoint: str, rate_hz: float, ticks: int, *, processes: bool = True) -> None:

@@ -3,8 +3,11 @@
 The budget (:mod:`hilswarm.agents.xbee.budget`) uses each vehicle's pin configuration (every
 output written, every input sampled: the largest TICK it can send), the ``[gateway]`` baud and
 mode and each agent's ``reply_every``; over 100 % of the tick period is a problem (``check`` and
-``run`` refuse the file), over 70 % a warning. ``reply_every`` belongs to ``xbee://`` agents of
-a gateway in broadcast mode (unicast answers every TICK: there is nothing to decimate).
+``run`` refuse the file), over 70 % a warning. In a realtime experiment a tick's latency
+through the radio over 80 % of the period is a warning too (late ticks to expect,
+:func:`~hilswarm.agents.xbee.budget.latency_messages`). ``reply_every`` belongs to
+``xbee://`` agents of a gateway in broadcast mode (unicast answers every TICK: there is nothing
+to decimate).
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ def check_gateway(
         RobotTraffic,
         budget_for,
         budget_messages,
+        latency_messages,
         section_size,
         tick_frame_sizes,
     )
@@ -113,5 +117,7 @@ def check_gateway(
         family=FrameFamily(config.family),
     )
     errors, notes = budget_messages(budget)
+    if experiment.settings.mode == "realtime":  # a lockstep tick has no deadline
+        notes += latency_messages(budget, answer=config.answer)
     problems += [Problem(experiment.path, "gateway", message) for message in errors]
     warnings += [Problem(experiment.path, "gateway", message) for message in notes]

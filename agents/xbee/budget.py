@@ -20,6 +20,17 @@ A budget over 100 % of the tick period fails ``hilswarm check`` (the ticks canno
 through); over 70 % it warns (no room for retries). Each message says what overflows, by how
 much, and what would fit: a lower rate, fewer robots, a faster baud, the packed broadcast or a
 larger ``reply_every``.
+
+**Latency** (:func:`tick_latency`). The budget sums each resource's time per tick; a tick also
+needs its stages one after the other, which the sums leave out: the first request through the
+host UART before any air time, each robot's radio passing a whole packet to its board's UART
+(the firmware's 115200 baud, :data:`ROBOT_BAUD`) before the board answers, the reply back
+through the robot's UART and the host UART. By unicast and by broadcast with ``answer =
+"wait"`` a tick is done when every agent has its answer; answering at once, when every robot
+drives the tick's outputs. :data:`HOST_ALLOWANCE_S` stands for what the host adds (the bus hops,
+the gathering of the agents' TICKs, the gateway's Python: measured 2-4 ms above the model).
+Above :data:`LATENCY_WARN_FRACTION` of the period a realtime run can expect late ticks, and
+``hilswarm check`` warns (a lockstep run has no deadline).
 """
 
 from __future__ import annotations
@@ -46,6 +57,14 @@ from hilswarm.agents.xbee.sim_coordinator import BAUD_CODES
 WARN_FRACTION = 0.70
 #: Above this fraction it fails.
 FAIL_FRACTION = 1.00
+#: The robots' UART [baud]: the firmware's 115200 8N1 (docs/protocol.md); each robot's radio
+#: passes every packet it receives to its board at this rate.
+ROBOT_BAUD = 115200
+#: What the host adds to a tick above the radio model [s]: the bus hops, the gathering of the
+#: agents' TICKs and the gateway's Python (measured 2-4 ms above it, docs/xbee.md "Measured").
+HOST_ALLOWANCE_S = 0.002
+#: Above this fraction of the period a realtime tick's latency warns (late ticks to expect).
+LATENCY_WARN_FRACTION = 0.80
 #: API frame bytes around the payload: (TX request, RX packet, TX status) per family.
 FRAME_BYTES = {
     FrameFamily.IEEE_802_15_4: (15, 15, 7),
@@ -327,3 +346,138 @@ def _how(budget: Budget) -> str:
         f"by packed broadcast ({budget.frames} frame(s), {budget.replies} replies in the "
         f"busiest tick, reply_every {m})"
     )
+
+
+@dataclass(frozen=True)
+class TickLatency:
+    """How long one tick takes through the radio (module docstring, "Latency").
+
+    Attributes:
+        radio_s: by the model, from the tick's start to what it waits for [s].
+        waits_for: ``"answers"`` (every agent's answer: unicast, broadcast ``wait``) or
+            ``"outputs"`` (every robot driving the tick's outputs: ``answer = "at_once"``).
+        period_s: the tick period [s].
+    """
+
+    radio_s: float
+    waits_for: str
+    period_s: float
+
+    @property
+    def total_s(self) -> float:
+        """The model plus :data:`HOST_ALLOWANCE_S` [s]."""
+        return self.radio_s + HOST_ALLOWANCE_S
+
+    @property
+    def fraction(self) -> float:
+        """:attr:`total_s` as a fraction of the period."""
+        return self.total_s / self.period_s
+
+
+def tick_latency(
+    budget: Budget, *, answer: str = "wait", air: AirParams | None = None
+) -> TickLatency:
+    """The latency of one tick of ``budget``'s robots (module docstring, "Latency").
+
+    By unicast: the first TICK through the host UART, each robot's request and reply on the
+    air one after the other (the gateway writes the TICKs back to back, so the UARTs overlap
+    the air), then the last robot's UART both ways with its radio's packetization timeout and
+    its RX frame and TX status through the host UART. By broadcast: the BCAST frames through
+    the host UART and the air, all of them through a robot's UART; then, waiting for the
+    replies, the reply's UART and packetization, the busiest tick's replies on the air and the
+    last RX frame. The largest request and reply stand for every robot's.
+    """
+    air = air or AirParams()
+    tx, rx, status = FRAME_BYTES[budget.family]
+    robots = budget.robots
+    dt = budget.dt
+    if not robots:
+        return TickLatency(0.0, "answers", dt)
+    request = max(r.request_bytes for r in robots)
+    reply = max(r.reply_bytes for r in robots)
+    back = uart_s(reply + air.packetization_chars, ROBOT_BAUD)
+    if budget.mode != "broadcast":
+        radio = (
+            uart_s(tx + request, budget.baud)
+            + sum(
+                air.mean_unicast_s(r.request_bytes) + air.mean_unicast_s(r.reply_bytes)
+                for r in robots
+            )
+            + uart_s(request, ROBOT_BAUD)
+            + back
+            + uart_s(rx + reply + status, budget.baud)
+        )
+        return TickLatency(radio, "answers", dt)
+    frames = bcast_frame_sizes([r.section_bytes for r in robots])
+    outputs = sum(uart_s(tx + f, budget.baud) + air.mean_broadcast_s(f) for f in frames)
+    outputs += uart_s(sum(frames), ROBOT_BAUD)
+    if answer == "at_once":
+        return TickLatency(outputs, "outputs", dt)
+    busiest = max(_reply_ticks(robots), key=len)
+    replies = sum(air.mean_unicast_s(r.reply_bytes) for r in busiest)
+    return TickLatency(outputs + back + replies + uart_s(rx + reply, budget.baud), "answers", dt)
+
+
+def latency_messages(budget: Budget, *, answer: str = "wait") -> list[str]:
+    """Warnings for a realtime run whose tick latency (:func:`tick_latency`) is over
+    :data:`LATENCY_WARN_FRACTION` of the period: by how much, and what would fit."""
+    latency = tick_latency(budget, answer=answer)
+    if latency.fraction <= LATENCY_WARN_FRACTION:
+        return []
+    n = len(budget.robots)
+    waited = (
+        "every agent has its answer"
+        if latency.waits_for == "answers"
+        else "every robot drives the tick's outputs"
+    )
+    if latency.waits_for == "answers":
+        late = (
+            "every tick will be late"
+            if latency.fraction > 1.0
+            else "expect late ticks (little room for the air's backoff and the host's jitter)"
+        )
+    else:
+        late = (
+            "each tick's outputs will reach the robots after the next tick is due"
+            if latency.fraction > 1.0
+            else "expect some ticks' outputs to reach robots after the next tick is due"
+        )
+    return [
+        f"XBee latency: ~{latency.total_s * 1e3:.1f} ms from a tick's start until {waited} "
+        f"({latency.radio_s * 1e3:.1f} ms through the UARTs and the air, "
+        f"{HOST_ALLOWANCE_S * 1e3:g} ms for the host), {latency.fraction:.0%} of the "
+        f"{latency.period_s * 1e3:.1f} ms period, for {n} robots {_how(budget)}"
+        f"{' answering at once' if latency.waits_for == 'outputs' else ''} at "
+        f"{budget.rate_hz:g} Hz: {late} in realtime; to fit below "
+        f"{LATENCY_WARN_FRACTION:.0%}: {_latency_advice(budget, answer, latency)}"
+    ]
+
+
+def _latency_advice(budget: Budget, answer: str, latency: TickLatency) -> str:
+    limit = LATENCY_WARN_FRACTION
+    parts = [f"rate_hz <= {math.floor(limit / latency.total_s * 10) / 10:g} Hz"]
+    fitting = 0
+    for count in range(len(budget.robots) - 1, 0, -1):
+        fewer = replace(budget, robots=budget.robots[:count])
+        if tick_latency(fewer, answer=answer).fraction <= limit:
+            fitting = count
+            break
+    if fitting:
+        parts.append(f"at most {fitting} robot{'s' if fitting > 1 else ''} on this coordinator")
+    options: list[tuple[str, Budget, str]] = []
+    if budget.mode != "broadcast":
+        robots = [replace(r, reply_every=5) for r in budget.robots]
+        packed = broadcast_budget(
+            robots, rate_hz=budget.rate_hz, baud=budget.baud, family=budget.family
+        )
+        options.append(('[gateway] mode = "broadcast" with reply_every = 5', packed, "wait"))
+        options.append(('the same with answer = "at_once"', packed, "at_once"))
+    elif answer != "at_once":
+        options.append(('[gateway] answer = "at_once"', budget, "at_once"))
+    for what, other, how in options:
+        fraction = tick_latency(other, answer=how).fraction
+        if fraction <= limit and _worst(other) <= FAIL_FRACTION:
+            parts.insert(0, f"{what} ({fraction:.0%} of the period)")
+            break
+    parts.append("a second coordinator on another channel")
+    return "; ".join(parts)

@@ -8,12 +8,15 @@ import pytest
 from hilswarm.agents.link.board import PinConfig, PinMode
 from hilswarm.agents.xbee.air import AirParams
 from hilswarm.agents.xbee.budget import (
+    HOST_ALLOWANCE_S,
     RobotTraffic,
     broadcast_budget,
     budget_messages,
     gateway_budget,
+    latency_messages,
     section_size,
     tick_frame_sizes,
+    tick_latency,
 )
 from hilswarm.orchestrator.checks import check_file
 
@@ -143,3 +146,68 @@ def test_check_broadcast_demo_and_reply_every_rules(tmp_path: Path) -> None:
     report = check_file(path)
     assert [p.key for p in report.problems] == ["agents.leader.reply_every"]
     assert "only for xbee:// links" in report.problems[0].message
+
+
+def test_tick_latency_by_hand() -> None:
+    """The stages one after the other (docs/xbee.md: 8.5 ms + 6.75 ms per robot by unicast)."""
+    request, reply = tick_frame_sizes(FRISBEE)  # 16 B, 13 B
+    p = AirParams()
+    per_robot = p.mean_unicast_s(16) + p.mean_unicast_s(13)
+    assert per_robot == pytest.approx(6.752e-3, abs=1e-6)  # 3.424 ms + 3.328 ms of air
+    # first TX frame (15 + 16 B), the robot's UART both ways (16 B; 13 B + 3 quiet characters
+    # of its radio's packetization), the last RX frame and its TX Status (15 + 13 + 7 B)
+    fixed = (15 + 16 + 16 + 13 + 3 + 15 + 13 + 7) * 10 / 115200
+    assert fixed == pytest.approx(8.507e-3, abs=1e-6)
+    for n in (1, 4, 6):
+        robots = [RobotTraffic(f"r{i}", request, reply) for i in range(n)]
+        latency = tick_latency(gateway_budget(robots, rate_hz=20.0))
+        assert latency.waits_for == "answers"
+        assert latency.radio_s == pytest.approx(fixed + n * per_robot)
+        assert latency.total_s == pytest.approx(latency.radio_s + HOST_ALLOWANCE_S)
+    # 16 Frisbees by broadcast: one 86 B BCAST through the host UART, the air and a robot's UART
+    robots = [RobotTraffic(f"r{i}", request, reply, 3, 5) for i in range(16)]
+    budget = broadcast_budget(robots, rate_hz=50.0)
+    outputs = (15 + 86) * 10 / 115200 + p.mean_broadcast_s(86) + 86 * 10 / 115200
+    at_once = tick_latency(budget, answer="at_once")
+    assert at_once.waits_for == "outputs" and at_once.radio_s == pytest.approx(outputs)
+    assert at_once.radio_s == pytest.approx(21.35e-3, abs=0.01e-3)  # docs/xbee.md
+    # waiting for the replies: then the reply's UART, the 4 replies of the busiest tick, an RX
+    wait = tick_latency(budget)
+    replies = (13 + 3) * 10 / 115200 + 4 * p.mean_unicast_s(13) + (15 + 13) * 10 / 115200
+    assert wait.radio_s == pytest.approx(outputs + replies)
+    assert wait.radio_s == pytest.approx(38.48e-3, abs=0.01e-3)  # docs/xbee.md
+
+
+def test_latency_warns_what_to_change() -> None:
+    request, reply = tick_frame_sizes(FRISBEE)
+    unicast = [RobotTraffic(f"r{i}", request, reply, 3) for i in range(6)]
+    (message,) = latency_messages(gateway_budget(unicast, rate_hz=20.0))
+    assert "~51.0 ms" in message and "102% of the 50.0 ms period" in message, message
+    assert "every tick will be late" in message, message
+    assert '[gateway] mode = "broadcast" with reply_every = 5' in message, message
+    assert "at most 4 robots on this coordinator" in message, message
+    assert latency_messages(gateway_budget(unicast[:4], rate_hz=20.0)) == []  # 75 %: room
+    packed = [RobotTraffic(f"r{i}", request, reply, 3, 5) for i in range(16)]
+    budget = broadcast_budget(packed, rate_hz=50.0)
+    (message,) = latency_messages(budget)  # waiting for the replies: 38.5 ms of 20
+    assert 'answer = "at_once"' not in message  # it does not fit either (21.4 ms)
+    (message,) = latency_messages(budget, answer="at_once")
+    assert "until every robot drives the tick's outputs" in message, message
+    assert "outputs will reach the robots after the next tick is due" in message, message
+    assert "at most 8 robots on this coordinator" in message, message
+    six = broadcast_budget(packed[:6], rate_hz=50.0)
+    (message,) = latency_messages(six)
+    assert '[gateway] answer = "at_once" (65% of the period)' in message, message
+    assert latency_messages(six, answer="at_once") == []
+
+
+def test_check_warns_of_latency_in_realtime_only(tmp_path: Path) -> None:
+    demo = REPO / "graphs" / "xbee_swarm.toml"  # 6 robots by unicast at 20 Hz, lockstep
+    report = check_file(demo)
+    assert report.ok and not [w for w in report.warnings if "XBee latency" in w.message]
+    path = tmp_path / "xbee_swarm_realtime.toml"
+    path.write_text(demo.read_text().replace('mode = "lockstep"', 'mode = "realtime"'))
+    report = check_file(path)
+    assert report.ok  # a warning, not a problem: the run goes, its late ticks are counted
+    (latency,) = [w for w in report.warnings if "XBee latency" in w.message]
+    assert latency.key == "gateway" and "every tick will be late" in latency.message
