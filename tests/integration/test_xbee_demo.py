@@ -176,3 +176,41 @@ def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
             again = totals["robots"][name]["asked_again"]
             assert 70 <= stale + again <= 85, (name, stale, again)
             assert totals["robots"][name]["fresh_replies"] >= 100 - stale - 1, name
+
+
+@pytest.mark.usefixtures("firmware_built")  # the robot behind the radio runs it
+def test_xbee_robots_with_mocap_poses_in_realtime(runs: list[RunProcess], tmp_path: Path) -> None:
+    """The lab's configuration: the robots behind one coordinator, their poses from the mocap
+    system (the protocol-level simulator through the real client), realtime. Answering at once
+    the check has no latency warning (waiting for the replies it has: test_xbee_budget)."""
+    try:
+        locate_build("duemilanove")
+    except SimulatorError as exc:
+        pytest.skip(str(exc))
+    text = (REPO / "graphs" / "xbee_swarm_broadcast.toml").read_text()
+    for old, new in (
+        # poses and timing are what this test checks: on a loaded machine the first ticks may
+        # be late, which alone would exit 3 (late ticks are tested in test_run_outcome)
+        ('mode = "lockstep"', 'mode = "realtime"\nmax_late_fraction = 0.5'),
+        ('mode = "broadcast"', 'mode = "broadcast"\nanswer = "at_once"'),
+        ("[graph]", '[mocap]\nsystem = "sim"\nrate_hz = 100.0\n\n[graph]'),
+    ):
+        assert old in text, old
+        text = text.replace(old, new, 1)
+    path = tmp_path / "xbee_mocap.toml"
+    path.write_text(text)
+    run = RunProcess(tmp_path, path, "--duration", "2")
+    runs.append(run)
+    assert run.wait(300) == 0, run.output()
+    output = run.output()
+    assert "XBee gateway: READY" in output and "mocap: " in output, output
+    assert "XBee latency" not in output, output
+    recording = read_recording(run.out)
+    for name in NAMES:
+        assert len(recording[f"/{name}/y"]) == 100, name
+        frames = [m["frame"] for m in recording[f"/{name}/telemetry/mocap"]]
+        assert len(frames) == 100 and frames == sorted(frames), name  # a mocap frame per tick
+        assert len(recording[f"/{name}/pose"]) == 100, name
+    assert recording["/leader/y"][-1]["x"] > 0.05  # it drove forward on its mocap poses
+    totals = recording["/gateway/stats"][-1]["totals"]
+    assert totals["broadcast_frames"] >= 100  # the outputs by broadcast, every tick
