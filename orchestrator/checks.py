@@ -16,7 +16,10 @@ in ``[agents.*]``), then, when that succeeds, checks every agent against the cod
   vehicle's input and output sizes and the neighbours' output sizes;
 * the board watchdog is longer than a control period;
 * with ``[mocap] system = "sim"`` every agent's board is simulated (the simulated cameras see
-  only simulated plants); a real mocap system sees every agent's body now.
+  only simulated plants); a real mocap system sees every agent's body now; ticks no faster
+  than the camera frames (a warning);
+* with ``xbee://`` links, the gateway's radio budget and, in realtime, a tick's latency
+  through the radio (:mod:`~hilswarm.orchestrator.xbee_check`).
 
 Errors are :class:`~hilswarm.orchestrator.problems.Problem` s (the file cannot run as written);
 warnings are Problems too but do not fail the check (e.g. a graph that is not connected, a
@@ -137,6 +140,7 @@ def check_parts(
         _check_settings(parts.path, parts.settings, report)
     _check_shared_links(parts, report)
     _check_mocap_bodies(parts, report)
+    _check_mocap_rate(parts, report)
     shared: dict[tuple[str, str], _Outcome] = {}
     built = {name: _AgentCheck(parts, spec, report, shared) for name, spec in parts.agents.items()}
     for check in built.values():
@@ -200,6 +204,25 @@ def _check_mocap_bodies(parts: ExperimentParts, report: CheckReport) -> None:
                     f"it sees: {', '.join(visible) or 'no bodies'}",
                 )
             )
+
+
+def _check_mocap_rate(parts: ExperimentParts, report: CheckReport) -> None:
+    """Ticks faster than the camera frames repeat poses and cannot lock to the frames."""
+    mocap, settings = parts.mocap, parts.settings
+    if mocap is None or settings is None or settings.rate_hz <= mocap.rate_hz:
+        return
+    report.warnings.append(
+        Problem(
+            parts.path,
+            "experiment.rate_hz",
+            f"{settings.rate_hz:g} Hz ticks are faster than the mocap frames "
+            f"([mocap] rate_hz = {mocap.rate_hz:g} Hz): only about "
+            f"{mocap.rate_hz / settings.rate_hz:.0%} of the ticks get a new pose (the others "
+            "sense the last one again), and the ticks cannot lock to the frames "
+            f"(docs/mocap.md); use rate_hz <= {mocap.rate_hz:g} Hz, or a faster frame rate if "
+            "the system has one",
+        )
+    )
 
 
 def _check_sim_mocap_links(

@@ -103,3 +103,17 @@ def test_mocap_body_without_a_mocap_section_is_a_problem(tmp_path: Path) -> None
     _, _, graph = rest.partition("\n[graph]\n")
     _, problems = parse_experiment(write(tmp_path, f"{head}\n[graph]\n{graph}"))
     assert any(p.key == "agents.leader.mocap_body" for p in problems), problems
+
+
+def test_ticks_faster_than_the_frames_warn(tmp_path: Path) -> None:
+    from hilswarm.orchestrator.checks import check_file
+
+    assert "rate_hz = 20.0" in DEMO and "rate_hz = 100.0" in DEMO  # control, camera frames
+    report = check_file(write(tmp_path, DEMO.replace("rate_hz = 20.0", "rate_hz = 150.0", 1)))
+    assert report.ok  # it can run: a warning
+    (warning,) = [w for w in report.warnings if w.key == "experiment.rate_hz"]
+    assert "faster than the mocap frames" in warning.message
+    assert "about 67% of the ticks get a new pose" in warning.message
+    assert "use rate_hz <= 100 Hz" in warning.message
+    same = check_file(write(tmp_path, DEMO.replace("rate_hz = 20.0", "rate_hz = 100.0", 1)))
+    assert not [w for w in same.warnings if w.key == "experiment.rate_hz"]
