@@ -425,18 +425,15 @@ def latency_messages(budget: Budget, *, answer: str = "wait") -> list[str]:
     if latency.fraction <= LATENCY_WARN_FRACTION:
         return []
     n = len(budget.robots)
-    waited = (
-        "every agent has its answer"
-        if latency.waits_for == "answers"
-        else "every robot drives the tick's outputs"
-    )
     if latency.waits_for == "answers":
+        waited = "every agent has its answer"
         late = (
             "every tick will be late"
             if latency.fraction > 1.0
             else "expect late ticks (little room for the air's backoff and the host's jitter)"
         )
     else:
+        waited = "every robot drives the tick's outputs"
         late = (
             "each tick's outputs will reach the robots after the next tick is due"
             if latency.fraction > 1.0
