@@ -251,8 +251,13 @@ def test_ticks_lock_to_the_frames_and_run_free_while_frames_stop(
         wait_for(lambda: spy.last_tick() >= paused_at + 30, 60, "ticks after the resume")
     finally:
         spy.close()
-    assert run.wait(RUN_TIMEOUT_S) == 0, run.output()
+    code = run.wait(RUN_TIMEOUT_S)
     recording = read_recording(run.out)
+    # (once in a whole suite, not reproduced: 4 late ticks around the stop; the lock's record,
+    # the stop and the late answers say where they were if it comes again)
+    late = recording.get("/orchestrator/late", [])
+    where = (frame_lock_events(recording), stopped_at, resumed_at, paused_at, late[:12])
+    assert code == 0, (run.output(), where)
 
     # The lock's record: locked, free while there were no frames, locked again.
     events = frame_lock_events(recording)
