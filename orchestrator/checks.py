@@ -17,7 +17,8 @@ in ``[agents.*]``), then, when that succeeds, checks every agent against the cod
 * the board watchdog is longer than a control period;
 * with ``[mocap] system = "sim"`` every agent's board is simulated (the simulated cameras see
   only simulated plants); a real mocap system sees every agent's body now; ticks no faster
-  than the camera frames (a warning);
+  than the camera frames, and ``tick_frames_only`` only where the manager's schedule is known
+  in advance (warnings);
 * with ``xbee://`` links, the gateway's radio budget and, in realtime, a tick's latency
   through the radio (:mod:`~hilswarm.orchestrator.xbee_check`).
 
@@ -60,6 +61,7 @@ from hilswarm.orchestrator.experiment import (
     Experiment,
     ExperimentParts,
     load_parts,
+    self_clocked,
 )
 from hilswarm.orchestrator.graph_facts import GraphFacts, graph_facts
 from hilswarm.orchestrator.problems import ExperimentError, Problem
@@ -140,7 +142,7 @@ def check_parts(
         _check_settings(parts.path, parts.settings, report)
     _check_shared_links(parts, report)
     _check_mocap_bodies(parts, report)
-    _check_mocap_rate(parts, report)
+    _check_mocap_timing(parts, report)
     shared: dict[tuple[str, str], _Outcome] = {}
     built = {name: _AgentCheck(parts, spec, report, shared) for name, spec in parts.agents.items()}
     for check in built.values():
@@ -206,10 +208,29 @@ def _check_mocap_bodies(parts: ExperimentParts, report: CheckReport) -> None:
             )
 
 
-def _check_mocap_rate(parts: ExperimentParts, report: CheckReport) -> None:
-    """Ticks faster than the camera frames repeat poses and cannot lock to the frames."""
+def _check_mocap_timing(parts: ExperimentParts, report: CheckReport) -> None:
+    """Ticks faster than the camera frames repeat poses and cannot lock to the frames;
+    ``tick_frames_only`` needs the manager's schedule, which tick messages replace."""
     mocap, settings = parts.mocap, parts.settings
-    if mocap is None or settings is None or settings.rate_hz <= mocap.rate_hz:
+    if mocap is None or settings is None:
+        return
+    realtime = settings.mode == "realtime"  # (lockstep with [mocap] is refused elsewhere)
+    if (
+        realtime
+        and mocap.tick_frames_only
+        and not self_clocked(settings.mode, settings.realtime_clock, parts.gateway)
+    ):
+        driver = "an XBee [gateway]" if parts.gateway is not None else 'realtime_clock = "manager"'
+        report.warnings.append(
+            Problem(
+                parts.path,
+                "mocap.tick_frames_only",
+                f"has no effect here: {driver} drives the ticks with tick messages, which "
+                "tell no tick in advance, so every frame's poses are published "
+                '(docs/mocap.md, "Only the frames the ticks use")',
+            )
+        )
+    if settings.rate_hz <= mocap.rate_hz:
         return
     report.warnings.append(
         Problem(

@@ -295,6 +295,16 @@ class ExperimentParts:
         return tuple(names[j] for j in np.flatnonzero(adjacency[position]))
 
 
+def self_clocked(
+    mode: str, realtime_clock: str, gateway: object | None, *, remote: bool = False
+) -> bool:
+    """Whether a run's agents keep the manager's schedule on the shared monotonic clock (one
+    schedule message) instead of one tick message per period (docs/running.md, "Ticks and
+    modes"): realtime, ``realtime_clock = "shared"``, every agent on the orchestrator's host
+    (``remote``: some join from others) and no XBee ``gateway`` (it is driven by ticks)."""
+    return mode == "realtime" and realtime_clock == "shared" and not remote and gateway is None
+
+
 def parse_link_overrides(items: Sequence[str]) -> dict[str, str]:
     """Turn command-line ``NAME=URL`` items (``--link leader=/dev/ttyUSB0``) into a mapping.
 

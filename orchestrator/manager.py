@@ -54,7 +54,7 @@ import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.agents.tick_engine import is_warmup, start_lead
-from hilswarm.orchestrator.experiment import Experiment
+from hilswarm.orchestrator.experiment import Experiment, self_clocked
 from hilswarm.orchestrator.frame_schedule import FRAME_ACQUIRE_WAIT_S, FrameSchedule
 from hilswarm.orchestrator.record_feed import RecordFeed
 from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink
@@ -170,11 +170,11 @@ class InstanceManager:
         self.mode = experiment.mode
         self._realtime = experiment.mode == "realtime"
         #: Self-clocked realtime (see the module docstring): agents keep the schedule.
-        self.self_clocked = (
-            self._realtime
-            and getattr(experiment, "realtime_clock", "shared") == "shared"
-            and not remote
-            and getattr(experiment, "gateway", None) is None
+        self.self_clocked = self_clocked(
+            experiment.mode,
+            getattr(experiment, "realtime_clock", "shared"),
+            getattr(experiment, "gateway", None),
+            remote=bool(remote),
         )
         if clock is not time.perf_counter and clock is not time.monotonic:
             self.self_clocked = False  # the schedule must be on CLOCK_MONOTONIC

@@ -117,3 +117,28 @@ def test_ticks_faster_than_the_frames_warn(tmp_path: Path) -> None:
     assert "use rate_hz <= 100 Hz" in warning.message
     same = check_file(write(tmp_path, DEMO.replace("rate_hz = 20.0", "rate_hz = 100.0", 1)))
     assert not [w for w in same.warnings if w.key == "experiment.rate_hz"]
+
+
+def test_tick_frames_only_without_the_managers_schedule_warns(tmp_path: Path) -> None:
+    from hilswarm.orchestrator.checks import check_file
+
+    old = "hold_frames = 50 "
+    assert old in DEMO
+    text = DEMO.replace(old, "tick_frames_only = true\n" + old, 1)
+    report = check_file(write(tmp_path, text))  # self-clocked: the schedule is known
+    assert report.ok and not [w for w in report.warnings if w.key == "mocap.tick_frames_only"]
+    ticked = text.replace('mode = "realtime"', 'mode = "realtime"\nrealtime_clock = "manager"', 1)
+    report = check_file(write(tmp_path, ticked))
+    assert report.ok
+    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_frames_only"]
+    assert 'has no effect here: realtime_clock = "manager" drives the ticks' in warning.message
+    xbee = (REPO / "graphs" / "xbee_swarm_broadcast.toml").read_text()
+    for old, new in (
+        ('mode = "lockstep"', 'mode = "realtime"'),
+        ('mode = "broadcast"', 'mode = "broadcast"\nanswer = "at_once"'),
+        ("[graph]", '[mocap]\nsystem = "sim"\ntick_frames_only = true\n\n[graph]'),
+    ):
+        xbee = xbee.replace(old, new, 1)
+    report = check_file(write(tmp_path, xbee))
+    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_frames_only"]
+    assert "an XBee [gateway] drives the ticks with tick messages" in warning.message
