@@ -136,14 +136,18 @@ def bench_bus_hop(endpoint: str, n: int) -> None:
     )
 
 
+def _frisbees(n: int, reply_every: int = 1) -> list[RobotTraffic]:
+    request, reply = tick_frame_sizes(FRISBEE)
+    section = section_size(FRISBEE)
+    return [RobotTraffic(str(i), request, reply, section, reply_every) for i in range(n)]
+
+
 def bound(rate_hz: float) -> tuple[int, str]:
     """Largest N the budget allows at ``rate_hz`` and which resource binds."""
-    request, reply = tick_frame_sizes(FRISBEE)
     n = 0
     binding = "air"
     while True:
-        robots = [RobotTraffic(str(i), request, reply) for i in range(n + 1)]
-        fractions = gateway_budget(robots, rate_hz=rate_hz).fractions()
+        fractions = gateway_budget(_frisbees(n + 1), rate_hz=rate_hz).fractions()
         worst = max(fractions, key=lambda k: fractions[k])
         if fractions[worst] > 1.0:
             return n, binding
@@ -152,24 +156,15 @@ def bound(rate_hz: float) -> tuple[int, str]:
 
 def bcast_bound(rate_hz: float, reply_every: int) -> tuple[int, str]:
     """Largest N the broadcast budget allows at ``rate_hz`` and which resource binds."""
-    request, reply = tick_frame_sizes(FRISBEE)
-    section = section_size(FRISBEE)
     n = 0
     binding = "air"
     while n < 255:
-        robots = [RobotTraffic(str(i), request, reply, section, reply_every) for i in range(n + 1)]
-        fractions = broadcast_budget(robots, rate_hz=rate_hz).fractions()
+        fractions = broadcast_budget(_frisbees(n + 1, reply_every), rate_hz=rate_hz).fractions()
         worst = max(fractions, key=lambda k: fractions[k])
         if fractions[worst] > 1.0:
             return n, binding
         n, binding = n + 1, worst
     return n, binding
-
-
-def _frisbees(n: int, reply_every: int = 1) -> list[RobotTraffic]:
-    request, reply = tick_frame_sizes(FRISBEE)
-    section = section_size(FRISBEE)
-    return [RobotTraffic(str(i), request, reply, section, reply_every) for i in range(n)]
 
 
 def unicast_tick_s(n: int) -> float:

@@ -455,7 +455,13 @@ def _latency_advice(budget: Budget, answer: str, latency: TickLatency) -> str:
     parts = [f"rate_hz <= {math.floor(limit / latency.total_s * 10) / 10:g} Hz"]
     fitting = 0
     for count in range(len(budget.robots) - 1, 0, -1):
-        fewer = replace(budget, robots=budget.robots[:count])
+        fewer = budget_for(
+            budget.robots[:count],
+            mode=budget.mode,
+            rate_hz=budget.rate_hz,
+            baud=budget.baud,
+            family=budget.family,
+        )
         if tick_latency(fewer, answer=answer).fraction <= limit:
             fitting = count
             break
