@@ -15,7 +15,10 @@ machine are honest but low, ratios are what to compare):
    simulated coordinator with its robots, and the gateway, each in a process of its own, as
    the radios and ``hilswarm run``'s gateway are; ``--one-process``: all in this one); a tick is
    late when not every reply is in within the period (a broadcast robot's reply on its reply
-   ticks is its own fresh sample: the radio round trip). Each N is reported as a fraction of
+   ticks is its own fresh sample: the radio round trip); each mode also answering at once
+   (``[gateway] answer = "at_once"``: every TICK answered from the robot's newest samples,
+   marked stale), where a tick is late when not every robot drives its outputs within the
+   period. Each N is reported as a fraction of
    two computed bounds: the throughput bound (air and host UART per tick,
    ``agents/xbee/budget.py``) and the latency bound (that, plus one tick's fill and drain: the
    frames through the host UART, the air, the robot's UART and back). Targets: unicast >= 80 %
@@ -23,6 +26,7 @@ machine are honest but low, ratios are what to compare):
 
     python benchmarks/xbee_gateway.py [--short] [--ticks K] [--reply-every M] [--one-process]
     python benchmarks/xbee_gateway.py --rates 50 --only broadcast --answers at_once
+    python benchmarks/xbee_gateway.py --rates 20 --only unicast --answers at_once
 """
 
 from __future__ import annotations
@@ -472,18 +476,35 @@ def latency_bound(rate_hz: float) -> tuple[int, float]:
     return n, 2 * unicast_tick_s(1) - unicast_tick_s(2)
 
 
-def bench_capacity(endpoint: str, rate_hz: float, ticks: int, *, processes: bool = True) -> None:
-    """Largest N with no late ticks vs the computed bound."""
+def unicast_delivery_s(n: int) -> float:
+    """When the last of ``n`` Frisbees has a unicast tick's outputs, answering at once [s]
+    (model, :func:`tick_latency`): the first TICK through the host UART, every robot's TICK
+    and every other robot's reply on the air (the worst order), the last TICK through its
+    robot's UART."""
+    return tick_latency(gateway_budget(_frisbees(n), rate_hz=1.0), answer="at_once").radio_s
+
+
+def bench_capacity(
+    endpoint: str, rate_hz: float, ticks: int, *, answer: str = "wait", processes: bool = True
+) -> None:
+    """Largest N with no late ticks by unicast vs the computed bound; ``answer``: the
+    gateway's ``answer`` (``"at_once"``: a tick is done when every robot drives its
+    outputs)."""
     n_bound, binding = bound(rate_hz)
     n_latency, fixed = latency_bound(rate_hz)
+    if answer == "at_once":  # the outputs' delivery is the latency that must fit
+        n_latency = 0
+        while n_latency < 255 and unicast_delivery_s(n_latency + 1) <= 1.0 / rate_hz:
+            n_latency += 1
     best = best_1pc = 0
     for n in range(1, n_bound + 2):
-        run = ticks_on_time(endpoint, n, rate_hz, ticks, processes=processes)
+        run = ticks_on_time(endpoint, n, rate_hz, ticks, answer=answer, processes=processes)
         late, failed, durations = run.late(), run.failed, sorted(run.tick_s)
         print(
-            f"  unicast {rate_hz:g} Hz, N={n}: {late}/{ticks} late ticks, {failed} failed; "
+            f"  unicast ({answer}) {rate_hz:g} Hz, N={n}: {late}/{ticks} late ticks, {failed} "
+            f"failed, {run.stale}/{n * ticks} replies stale; "
             f"tick p50 {durations[len(durations) // 2] * 1e3:.1f} ms, "
-            f"max {durations[-1] * 1e3:.1f} ms"
+            f"max {durations[-1] * 1e3:.1f} ms; {load()}"
         )
         if late == 0:
             best = n
@@ -493,11 +514,15 @@ def bench_capacity(endpoint: str, rate_hz: float, ticks: int, *, processes: bool
             break
     print(f"  (largest N with at most 1 % late ticks: {best_1pc})")
     fraction = best / n_bound if n_bound else 0.0
+    latency = (
+        "answering at once, the bound on delivering every robot's outputs within the period"
+        if answer == "at_once"
+        else f"with one round trip's fill and drain ({fixed * 1e3:.1f} ms) the bound"
+    )
     print(
-        f"unicast at {rate_hz:g} Hz: largest N with no late tick {best}; computed bound "
-        f"{n_bound} ({binding}): {fraction:.0%} of it (target >= 80 %); with one round trip's "
-        f"fill and drain ({fixed * 1e3:.1f} ms) the bound is {n_latency}: "
-        f"{best / n_latency if n_latency else 0:.0%} of it; {load()}"
+        f"unicast ({answer}) at {rate_hz:g} Hz: largest N with no late tick {best}; computed "
+        f"bound {n_bound} ({binding}): {fraction:.0%} of it (target >= 80 %); {latency} is "
+        f"{n_latency}: {best / n_latency if n_latency else 0:.0%} of it; {load()}"
     )
 
 
@@ -589,7 +614,8 @@ def main() -> None:
         choices=("wait", "at_once"),
         nargs="+",
         default=None,
-        help="broadcast: the gateway's answer modes to measure (default: both; --short: wait)",
+        help="the gateway's answer modes to measure (default: both; --short: both by unicast, "
+        "wait by broadcast)",
     )
     args = parser.parse_args()
     processes = not args.one_process
@@ -602,7 +628,8 @@ def main() -> None:
         bench_bus_hop(endpoint, 100 if args.short else 1000)
         for rate in args.rates or ((20.0,) if args.short else (20.0, 50.0)):
             if args.only != "broadcast":
-                bench_capacity(endpoint, rate, ticks, processes=processes)
+                for answer in args.answers or ("wait", "at_once"):
+                    bench_capacity(endpoint, rate, ticks, answer=answer, processes=processes)
             if args.only != "unicast":
                 step = 8 if args.short else (4 if rate < 30 else 2)
                 answers = args.answers or (("wait",) if args.short else ("wait", "at_once"))

@@ -41,7 +41,7 @@ _COUNTER_WORDS = {
     "dropped": "dropped messages",
     "skipped": "ticks skipped",
     "link_faults": "link faults",
-    "stale_samples": "stale samples (answers of the XBee gateway in broadcast mode)",
+    "stale_samples": "stale samples (the XBee gateway answered from the robot's last samples)",
 }
 #: Counters of a mode's normal operation: listed as a note, never a degradation. STALE board
 #: answers come only from the XBee gateway's broadcast mode, by design (docs/xbee.md).

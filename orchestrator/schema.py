@@ -277,8 +277,9 @@ class GatewaySection(_Table):
     """unicast: a TICK and its reply per robot and tick; broadcast: every robot's outputs of a
     tick in one packed BCAST frame (firmware protocol 2), replies every reply_every-th tick."""
     answer: Literal["wait", "at_once"] = "wait"
-    """mode = "broadcast": on its reply ticks an agent waits for its robot's own reply (wait),
-    or every TICK is answered at once with the newest samples, marked stale (at_once)."""
+    """wait: an agent waits for its robot's own reply (broadcast: on its reply ticks); at_once:
+    every TICK is answered at once with the robot's newest samples, marked stale (the TICKs
+    still go to the robots)."""
     family: Literal["802.15.4", "zigbee"] = "802.15.4"
     """port = "sim": the frame family the simulated radios speak."""
     seed: int = Field(0, ge=0)

@@ -25,9 +25,9 @@ larger ``reply_every``.
 needs its stages one after the other, which the sums leave out: the first request through the
 host UART before any air time, each robot's radio passing a whole packet to its board's UART
 (the firmware's 115200 baud, :data:`ROBOT_BAUD`) before the board answers, the reply back
-through the robot's UART and the host UART. By unicast and by broadcast with ``answer =
-"wait"`` a tick is done when every agent has its answer; answering at once, when every robot
-drives the tick's outputs. :data:`HOST_ALLOWANCE_S` stands for what the host adds (the bus hops,
+through the robot's UART and the host UART. With ``answer = "wait"`` a tick is done when
+every agent has its answer; answering at once (unicast or broadcast), when every robot drives
+the tick's outputs. :data:`HOST_ALLOWANCE_S` stands for what the host adds (the bus hops,
 the gathering of the agents' TICKs, the gateway's Python: measured 2-4 ms above the model).
 Above :data:`LATENCY_WARN_FRACTION` of the period a realtime run can expect late ticks, and
 ``hilswarm check`` warns (a lockstep run has no deadline).
@@ -354,7 +354,7 @@ class TickLatency:
 
     Attributes:
         radio_s: by the model, from the tick's start to what it waits for [s].
-        waits_for: ``"answers"`` (every agent's answer: unicast, broadcast ``wait``) or
+        waits_for: ``"answers"`` (every agent's answer: ``answer = "wait"``) or
             ``"outputs"`` (every robot driving the tick's outputs: ``answer = "at_once"``).
         period_s: the tick period [s].
     """
@@ -382,7 +382,9 @@ def tick_latency(
     By unicast: the first TICK through the host UART, each robot's request and reply on the
     air one after the other (the gateway writes the TICKs back to back, so the UARTs overlap
     the air), then the last robot's UART both ways with its radio's packetization timeout and
-    its RX frame and TX status through the host UART. By broadcast: the BCAST frames through
+    its RX frame and TX status through the host UART; answering at once, up to the last
+    robot's request through its UART, with every other robot's reply on the air before it
+    (the worst order). By broadcast: the BCAST frames through
     the host UART and the air, all of them through a robot's UART; then, waiting for the
     replies, the reply's UART and packetization, the busiest tick's replies on the air and the
     last RX frame. The largest request and reply stand for every robot's.
@@ -397,17 +399,17 @@ def tick_latency(
     reply = max(r.reply_bytes for r in robots)
     back = uart_s(reply + air.packetization_chars, ROBOT_BAUD)
     if budget.mode != "broadcast":
-        radio = (
+        outputs = (
             uart_s(tx + request, budget.baud)
             + sum(
                 air.mean_unicast_s(r.request_bytes) + air.mean_unicast_s(r.reply_bytes)
                 for r in robots
             )
             + uart_s(request, ROBOT_BAUD)
-            + back
-            + uart_s(rx + reply + status, budget.baud)
         )
-        return TickLatency(radio, "answers", dt)
+        if answer == "at_once":  # the last robot's own reply is not waited for
+            return TickLatency(outputs - air.mean_unicast_s(robots[-1].reply_bytes), "outputs", dt)
+        return TickLatency(outputs + back + uart_s(rx + reply + status, budget.baud), "answers", dt)
     frames = bcast_frame_sizes([r.section_bytes for r in robots])
     outputs = sum(uart_s(tx + f, budget.baud) + air.mean_broadcast_s(f) for f in frames)
     outputs += uart_s(sum(frames), ROBOT_BAUD)
@@ -468,6 +470,8 @@ def _latency_advice(budget: Budget, answer: str, latency: TickLatency) -> str:
     if fitting:
         parts.append(f"at most {fitting} robot{'s' if fitting > 1 else ''} on this coordinator")
     options: list[tuple[str, Budget, str]] = []
+    if answer != "at_once":
+        options.append(('[gateway] answer = "at_once"', budget, "at_once"))
     if budget.mode != "broadcast":
         robots = [replace(r, reply_every=5) for r in budget.robots]
         packed = broadcast_budget(
@@ -475,8 +479,6 @@ def _latency_advice(budget: Budget, answer: str, latency: TickLatency) -> str:
         )
         options.append(('[gateway] mode = "broadcast" with reply_every = 5', packed, "wait"))
         options.append(('the same with answer = "at_once"', packed, "at_once"))
-    elif answer != "at_once":
-        options.append(('[gateway] answer = "at_once"', budget, "at_once"))
     for what, other, how in options:
         fraction = tick_latency(other, answer=how).fraction
         if fraction <= limit and _worst(other) <= FAIL_FRACTION:

@@ -7,8 +7,8 @@
     baud = 115200             # host UART rate of the coordinator [baud]
     api_mode = 1              # 1 = API, 2 = API with escaping
     mode = "unicast"          # or "broadcast": one packed BCAST per tick (protocol 2 robots)
-    answer = "wait"           # broadcast: "wait" for a robot's own reply on its reply ticks,
-                              # or "at_once" (samples always one tick old or more, STALE)
+    answer = "wait"           # "wait" for a robot's own reply (broadcast: on its reply
+                              # ticks), or "at_once" (samples one tick old or more, STALE)
     # only for port = "sim":
     family = "802.15.4"       # or "zigbee": the frame family the simulated radios speak
     seed = 0                  # seed of the simulated air (backoffs, losses)
@@ -53,8 +53,9 @@ class GatewayConfig:
         api_mode: 1 (API) or 2 (API with escaping).
         mode: ``"unicast"`` (a TICK and its reply per robot and tick) or ``"broadcast"`` (the
             agents' TICKs of a tick packed into one BCAST, replies decimated; docs/xbee.md).
-        answer: broadcast mode: ``"wait"`` (on its reply ticks an agent gets its robot's own
-            reply) or ``"at_once"`` (every TICK answered at once, samples marked STALE).
+        answer: ``"wait"`` (an agent gets its robot's own reply: every tick by unicast, on
+            its reply ticks by broadcast) or ``"at_once"`` (every TICK answered at once from
+            the robot's newest samples, marked STALE; the TICKs still go to the robots).
         family: frame family of the simulated radios (``port = "sim"`` only).
         seed: seed of the simulated air.
         loss: loss probability of each frame on every simulated link.

@@ -8,7 +8,10 @@ The gateway owns the coordinator's serial port. Agents reach it over the experim
 * what a robot sends back arrives as RX Packets (0x80 / 0x90): their RF data go, unchanged, to
   ``agent/<name>/link/rx``. The robots' radios are in transparent mode, so the firmware and the
   agent's :class:`~hilswarm.agents.link.serial_board.SerialBoard` logic (seq numbers, retries,
-  CRC) are exactly those of a USB link.
+  CRC) are exactly those of a USB link;
+* with ``answer = "at_once"`` the TICKs still go to the robots, but each agent is answered at
+  once from its robot's newest samples, marked STALE (:mod:`.unicast_answers`); with
+  ``mode = "broadcast"`` a tick's TICKs go as one packed broadcast (:mod:`.packer`).
 
 Bus callbacks only hand the bytes to the writer thread's queue. A reader thread decodes the
 port (:class:`~.api_frames.ApiFrameDecoder`) and publishes. TX Status frames are counted per
@@ -68,6 +71,7 @@ from hilswarm.agents.xbee.api_frames import (
 from hilswarm.agents.xbee.config import GatewayConfig, format_address
 from hilswarm.agents.xbee.packer import Action, Broadcast, BroadcastPacker, ToAgent, Unicast
 from hilswarm.agents.xbee.stages import encode_stages
+from hilswarm.agents.xbee.unicast_answers import UnicastAnswers
 
 _log = logging.getLogger(__name__)
 
@@ -184,17 +188,19 @@ class Gateway:
         self._air = AirParams()
         self._max_payload = self._air.max_payload
         self._ticks: queue.SimpleQueue[tuple[int, float]] = queue.SimpleQueue()
-        #: Broadcast mode (``[gateway] mode = "broadcast"``): the TICK packer, else ``None``.
-        self.packer = (
-            BroadcastPacker(
+        #: What reads the agents' frames: the TICK packer (``mode = "broadcast"``), the
+        #: answers at once by unicast (``answer = "at_once"``), else ``None`` (the bytes go
+        #: through unread).
+        self.packer: BroadcastPacker | UnicastAnswers | None = None
+        if config.mode == "broadcast":
+            self.packer = BroadcastPacker(
                 sorted(self.robots),
                 reply_every=reply_every,
                 period_s=1.0 / rate_hz,
                 answer=config.answer,
             )
-            if config.mode == "broadcast"
-            else None
-        )
+        elif config.answer == "at_once":
+            self.packer = UnicastAnswers(sorted(self.robots))
         self._packer_lock = threading.Lock()
         self._last_tick = (0, 0.0)
 

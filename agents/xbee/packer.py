@@ -68,8 +68,8 @@ from hilswarm.agents.link.codec import (
 _log = logging.getLogger(__name__)
 
 #: One-shot status events (reported once) and the bits a stale reply repeats.
-_EVENTS = int(BoardStatus.WATCHDOG_TRIPPED | BoardStatus.RX_ERRORS)
-_KEPT_STATUS = ~_EVENTS & 0xFF
+EVENTS = int(BoardStatus.WATCHDOG_TRIPPED | BoardStatus.RX_ERRORS)
+_KEPT_STATUS = ~EVENTS & 0xFF
 #: ``answer`` values: wait for the robot's own reply on its reply ticks, or answer at once.
 ANSWERS = ("wait", "at_once")
 #: Section header bytes (id, hdr) and a BCAST's type + seq [B].
@@ -325,14 +325,12 @@ class BroadcastPacker:
     def _stale(self, robot: _Robot, pending: _Pending) -> ToAgent:
         samples = robot.samples or {}
         robot.stale += 1
-        reply = TickReplyMsg(
-            pending.agent_seq,
-            (robot.status & _KEPT_STATUS) | robot.events | BoardStatus.STALE,
-            robot.time_us,
-            tuple(samples.get(pin, 0) for pin in pending.read_pins),
+        values = tuple(samples.get(pin, 0) for pin in pending.read_pins)
+        data = stale_tick_reply(
+            pending.agent_seq, robot.status, robot.events, robot.time_us, values
         )
         robot.events = 0
-        return ToAgent(robot.name, frame_payload(encode_payload(reply)), stale=True)
+        return ToAgent(robot.name, data, stale=True)
 
     # ------------------------------------------------------------------ robot -> agent
     def from_robot(self, name: str, data: bytes) -> list[Action]:
@@ -381,7 +379,7 @@ class BroadcastPacker:
         robot.status = payload[2]
         owed = robot.owed
         if owed is None or payload[1] != owed[0]:
-            robot.events |= robot.status & _EVENTS  # late or unasked: no agent sees it now
+            robot.events |= robot.status & EVENTS  # late or unasked: no agent sees it now
             return None
         robot.owed = None
         reply = TickReplyMsg(
@@ -401,3 +399,18 @@ class BroadcastPacker:
             n: {"bcast_id": r.bcast_id, "fresh_replies": r.fresh, "asked_again": r.asked_again}
             for n, r in self.robots.items()
         }
+
+
+def stale_tick_reply(
+    agent_seq: int, status: int, events: int, time_us: int, samples: Sequence[int]
+) -> bytes:
+    """The wire frame of a TICK_REPLY the gateway gives itself from a robot's last samples:
+    the robot's last ``status`` without its one-shot events, the ``events`` no agent has seen
+    yet, and :attr:`~.board.BoardStatus.STALE`; ``time_us``: the board time of the samples."""
+    reply = TickReplyMsg(
+        agent_seq,
+        (status & _KEPT_STATUS) | events | BoardStatus.STALE,
+        time_us,
+        tuple(samples),
+    )
+    return frame_payload(encode_payload(reply))

@@ -118,9 +118,8 @@ def test_stale_samples_are_a_note_never_a_degradation() -> None:
 
     code, degradations, notes = outcome({"f1": {"stale_samples": 80}})
     assert code == CLEAN and not degradations
-    assert notes == ["agent f1: 80 stale samples (answers of the XBee gateway in broadcast mode)"]
+    stale = "stale samples (the XBee gateway answered from the robot's last samples)"
+    assert notes == [f"agent f1: 80 {stale}"]
     code, degradations, _ = outcome({"f1": {"stale_samples": 80, "link_faults": 1}})
     assert code == DEGRADED  # a real fault beside them still degrades
-    assert degradations == [
-        "agent f1: 1 link faults, 80 stale samples (answers of the XBee gateway in broadcast mode)"
-    ]
+    assert degradations == [f"agent f1: 1 link faults, 80 {stale}"]

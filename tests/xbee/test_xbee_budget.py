@@ -164,6 +164,17 @@ def test_tick_latency_by_hand() -> None:
         assert latency.waits_for == "answers"
         assert latency.radio_s == pytest.approx(fixed + n * per_robot)
         assert latency.total_s == pytest.approx(latency.radio_s + HOST_ALLOWANCE_S)
+        # answering at once: up to the last robot's TICK through its UART, every other
+        # robot's reply on the air before it (the worst order)
+        at_once = tick_latency(gateway_budget(robots, rate_hz=20.0), answer="at_once")
+        outputs = (15 + 16 + 16) * 10 / 115200 + n * p.mean_unicast_s(16)
+        outputs += (n - 1) * p.mean_unicast_s(13)
+        assert at_once.waits_for == "outputs" and at_once.radio_s == pytest.approx(outputs)
+    six = tick_latency(
+        gateway_budget([RobotTraffic(f"r{i}", request, reply) for i in range(6)], rate_hz=20.0),
+        answer="at_once",
+    )
+    assert six.radio_s == pytest.approx(41.3e-3, abs=0.05e-3)  # docs/xbee.md
     # 16 Frisbees by broadcast: one 86 B BCAST through the host UART, the air and a robot's UART
     robots = [RobotTraffic(f"r{i}", request, reply, 3, 5) for i in range(16)]
     budget = broadcast_budget(robots, rate_hz=50.0)
@@ -187,6 +198,13 @@ def test_latency_warns_what_to_change() -> None:
     assert '[gateway] mode = "broadcast" with reply_every = 5' in message, message
     assert "at most 4 robots on this coordinator" in message, message
     assert latency_messages(gateway_budget(unicast[:4], rate_hz=20.0)) == []  # 75 %: room
+    # answering at once by unicast: 4 robots fit (27.8 + 2 ms: 60 %), so 5 waiting are told
+    (message,) = latency_messages(gateway_budget(unicast[:5], rate_hz=20.0))
+    assert message.count("at_once") == 1 and '[gateway] answer = "at_once" (' in message
+    assert latency_messages(gateway_budget(unicast[:4], rate_hz=20.0), answer="at_once") == []
+    (message,) = latency_messages(gateway_budget(unicast, rate_hz=20.0), answer="at_once")
+    assert "for 6 robots by unicast answering at once" in message, message
+    assert "expect some ticks' outputs to reach robots after the next tick" in message
     packed = [RobotTraffic(f"r{i}", request, reply, 3, 5) for i in range(16)]
     budget = broadcast_budget(packed, rate_hz=50.0)
     (message,) = latency_messages(budget)  # waiting for the replies: 38.5 ms of 20
