@@ -266,3 +266,23 @@ def test_a_rebooted_robot_is_configured_again_through_its_agents_board(swarm: Sw
     writes = _writes(20, names)
     _tick_all(boards, writes)
     _applied(sims, writes)  # r2 driven again
+
+
+def test_coordinator_unplugged_no_answer_from_old_samples_then_back(swarm: Swarm) -> None:
+    coordinator, gateway, boards, sims = swarm
+    names = sorted(boards)
+    for k in range(3):
+        assert all(isinstance(r, TickReply) for r in _tick_all(boards, _writes(k, names)).values())
+    for board in boards.values():
+        board.timeout_s, board.retries = 0.1, 0
+    coordinator.unplug()
+    _wait(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
+    results = _tick_all(boards, _writes(3, names))  # no stale answers while it is away
+    assert all(isinstance(r, BoardTimeoutError) for r in results.values()), results
+    coordinator.replug()
+    _wait(gateway.connected.is_set, 5.0, "the gateway to reconnect")
+    for board in boards.values():
+        board.timeout_s, board.retries = 0.3, 3
+    for k in range(4, 7):
+        assert all(isinstance(r, TickReply) for r in _tick_all(boards, _writes(k, names)).values())
+    _applied(sims, _writes(6, names))
