@@ -8,22 +8,17 @@ protocol-checking Python firmware (``WireServer`` around ``SimBoard``) behind ea
 from __future__ import annotations
 
 import dataclasses
-import threading
-import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 
 import pytest
 import zenoh
-from hilswarm.agents import bus
 from hilswarm.agents.errors import BoardTimeoutError
 from hilswarm.agents.link.board import BoardInfo, BoardStatus, PinConfig, PinMode, TickReply
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.xbee.config import GatewayConfig
-from hilswarm.agents.xbee.gateway import Gateway
-from hilswarm.agents.xbee.sim_coordinator import SimCoordinator, SimRemote
-from hilswarm.agents.xbee.sim_robot import WireServerUart
-from hilswarm.agents.xbee.transport import XBeeBoard, board_from_url
+from hilswarm.agents.xbee.transport import XBeeBoard
+from xbee_rig import Swarm, open_swarm, tick_all, wait_for
 
 EXP = "xbee_bcast_test"
 ADDRS = {f"r{i}": 0x0013A20040000010 + i for i in range(1, 4)}
@@ -42,17 +37,6 @@ class ProtocolOneBoard(SimBoard):
         return dataclasses.replace(super().open(), protocol_version=1)
 
 
-def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.01)
-
-
-Swarm = tuple[SimCoordinator, Gateway, dict[str, XBeeBoard], dict[str, SimBoard]]
-
-
 def _swarm(
     stack: ExitStack,
     client_session: Callable[[], zenoh.Session],
@@ -60,33 +44,18 @@ def _swarm(
     reply_every: Mapping[str, int],
     answer: str = "wait",
 ) -> Swarm:
-    remotes = [SimRemote(ADDRS[n], WireServerUart(sims[n]), node_id=n) for n in sims]
-    coordinator = stack.enter_context(SimCoordinator(remotes, api_mode=2, seed=5))
-    gateway = Gateway(
-        GatewayConfig(port="sim", api_mode=2, mode="broadcast", answer=answer),
-        bus.BusKeys(EXP),
-        {n: ADDRS[n] for n in sims},
-        client_session(),
-        port_url=coordinator.url,
-        stats_period_s=0.1,
+    config = GatewayConfig(port="sim", api_mode=2, mode="broadcast", answer=answer)
+    return open_swarm(
+        stack,
+        client_session,
+        EXP,
+        ADDRS,
+        config,
+        seed=5,
+        pins=PINS,
+        sims=sims,
         reply_every=reply_every,
-        rate_hz=20.0,
     )
-    stack.enter_context(gateway)
-    agent_session = client_session()
-    boards = {}
-    for name in sims:
-        board = board_from_url(
-            f"xbee://{ADDRS[name]:016X}?timeout_s=0.3&retries=2",
-            session=agent_session,
-            experiment=EXP,
-            agent=name,
-        )
-        stack.callback(board.close)
-        board.open()
-        board.configure(PINS, watchdog_s=2.0)
-        boards[name] = board
-    return coordinator, gateway, boards, dict(sims)
 
 
 @pytest.fixture
@@ -99,22 +68,7 @@ def swarm(client_session: Callable[[], zenoh.Session]) -> Iterator[Swarm]:
 def _tick(
     boards: Mapping[str, XBeeBoard], writes: Mapping[str, dict[int, int]]
 ) -> dict[str, TickReply | BaseException]:
-    """Every agent's exchange of one tick at once, as the agents' processes do."""
-    out: dict[str, TickReply | BaseException] = {}
-
-    def run(name: str) -> None:
-        try:
-            out[name] = boards[name].exchange(writes[name], [14])
-        except Exception as exc:  # reported to the test below
-            out[name] = exc
-
-    threads = [threading.Thread(target=run, args=(n,)) for n in writes]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(timeout=10.0)
-    assert len(out) == len(writes), "an exchange did not finish"
-    return out
+    return tick_all(boards, writes, [14])
 
 
 def _writes(k: int, names: list[str]) -> dict[str, dict[int, int]]:
@@ -141,7 +95,7 @@ def test_one_broadcast_per_tick_each_robot_its_own_outputs_replies_decimated(
             assert isinstance(reply, TickReply), (k, name, reply)
             replies[name].append(reply)
         # every robot drives exactly its own agent's outputs of this tick
-        _wait(
+        wait_for(
             lambda w=writes: all({p: sims[n].outputs[p] for p in (5, 7, 9)} == w[n] for n in names),
             5.0,
             f"tick {k}'s outputs on every robot",
@@ -212,7 +166,7 @@ def test_answer_at_once_every_sample_stale_refreshed_by_the_decimated_replies(
         def applied(writes: dict[str, dict[int, int]]) -> None:
             """Pace the ticks to the radio: each robot drives this tick's outputs (at once,
             nothing else would: the answers do not wait for the air)."""
-            _wait(
+            wait_for(
                 lambda: all({p: sims[n].outputs[p] for p in (5, 7, 9)} == writes[n] for n in names),
                 5.0,
                 "the tick's outputs on every robot",
@@ -237,7 +191,7 @@ def test_answer_at_once_every_sample_stale_refreshed_by_the_decimated_replies(
         for k in range(12, 40):
             results = _tick(boards, _writes(k, names))
             assert isinstance(results["r1"], TickReply)
-            _wait(lambda k=k: sims["r1"].outputs[5] == _writes(k, names)["r1"][5], 5.0, "r1")
+            wait_for(lambda k=k: sims["r1"].outputs[5] == _writes(k, names)["r1"][5], 5.0, "r1")
             if isinstance(results["r3"], BoardTimeoutError):
                 break
         else:
@@ -259,11 +213,11 @@ def test_broadcast_coordinator_unplugged_every_agent_times_out_then_back(
         for board in boards.values():
             board.timeout_s, board.retries = 0.1, 0
         coordinator.unplug()
-        _wait(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
+        wait_for(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
         results = _tick(boards, _writes(4, names))  # no answers from old samples meanwhile
         assert all(isinstance(r, BoardTimeoutError) for r in results.values()), results
         coordinator.replug()
-        _wait(gateway.connected.is_set, 5.0, "the gateway to reconnect")
+        wait_for(gateway.connected.is_set, 5.0, "the gateway to reconnect")
         for board in boards.values():
             board.timeout_s, board.retries = 0.3, 3
         for k in range(5, 8):
@@ -286,4 +240,4 @@ def test_a_rebooted_robot_recovers_through_its_agents_unicast_retry(swarm: Swarm
     assert "board_reset" in events  # the retry went by unicast: NOT_CONFIGURED, re-configured
     writes = _writes(20, names)
     _tick(boards, writes)
-    _wait(lambda: sims["r2"].outputs[5] == writes["r2"][5], 5.0, "r2 driven by broadcast again")
+    wait_for(lambda: sims["r2"].outputs[5] == writes["r2"][5], 5.0, "r2 driven by broadcast again")

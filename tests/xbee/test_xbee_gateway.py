@@ -6,7 +6,6 @@ frames on a real tty), boards in the agent's role through ``xbee://`` links.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -23,6 +22,7 @@ from hilswarm.agents.xbee.gateway import Gateway, GatewayError
 from hilswarm.agents.xbee.sim_coordinator import SimCoordinator, SimRemote
 from hilswarm.agents.xbee.sim_robot import WireServerUart
 from hilswarm.agents.xbee.transport import board_from_url
+from xbee_rig import wait_for
 
 EXP = "xbee_test"
 ADDRS = {"r1": 0x0013A20040000001, "r2": 0x0013A20040000002}
@@ -31,14 +31,6 @@ PINS = [
     PinConfig(7, PinMode.DIGITAL_OUT),
     PinConfig(14, PinMode.ANALOG_IN),
 ]
-
-
-def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.01)
 
 
 @pytest.fixture
@@ -113,7 +105,7 @@ def test_robot_out_of_range_misses_its_ticks_others_go_on(swarm: tuple) -> None:
         boards["r1"].exchange({5: 1}, [14])
     for _ in range(5):
         boards["r2"].exchange({5: 2}, [14])
-    _wait(lambda: gateway.stats.robots["r1"].tx_failures >= 2, 5.0, "TX status failures of r1")
+    wait_for(lambda: gateway.stats.robots["r1"].tx_failures >= 2, 5.0, "TX status failures of r1")
     assert gateway.stats.robots["r2"].tx_failures == 0
     coordinator.set_out_of_range(ADDRS["r1"], False)
     boards["r1"].exchange({5: 3}, [14])  # back in range: the next tick works
@@ -127,11 +119,11 @@ def test_coordinator_unplugged_and_replugged(swarm: tuple) -> None:
     board.timeout_s = 0.1
     board.retries = 0
     coordinator.unplug()
-    _wait(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
+    wait_for(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
     with pytest.raises(BoardTimeoutError):
         board.exchange({5: 1}, [14])
     coordinator.replug()
-    _wait(gateway.connected.is_set, 5.0, "the gateway to reconnect")
+    wait_for(gateway.connected.is_set, 5.0, "the gateway to reconnect")
     assert gateway.stats.reconnections == 1
     board.retries = 3
     board.exchange({5: 4}, [14])

@@ -6,14 +6,11 @@ simulated coordinator -> air -> the protocol-checking Python firmware behind eac
 
 from __future__ import annotations
 
-import threading
-import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack
 
 import pytest
 import zenoh
-from hilswarm.agents import bus
 from hilswarm.agents.errors import BoardTimeoutError
 from hilswarm.agents.link.board import BoardStatus, PinConfig, PinMode, TickReply
 from hilswarm.agents.link.codec import (
@@ -30,12 +27,10 @@ from hilswarm.agents.link.codec import (
 )
 from hilswarm.agents.link.sim_board import SimBoard
 from hilswarm.agents.xbee.config import GatewayConfig
-from hilswarm.agents.xbee.gateway import Gateway
 from hilswarm.agents.xbee.packer import ToAgent, Unicast
-from hilswarm.agents.xbee.sim_coordinator import SimCoordinator, SimRemote
-from hilswarm.agents.xbee.sim_robot import WireServerUart
-from hilswarm.agents.xbee.transport import XBeeBoard, board_from_url
+from hilswarm.agents.xbee.transport import XBeeBoard
 from hilswarm.agents.xbee.unicast_answers import PATIENCE_TICKS, UnicastAnswers
+from xbee_rig import Swarm, open_swarm, tick_all, wait_for
 
 # ------------------------------------------------------------------ the answerer alone
 
@@ -134,67 +129,19 @@ EXP = "xbee_at_once_test"
 ADDRS = {f"r{i}": 0x0013A20040000020 + i for i in range(1, 4)}
 PINS = [PinConfig(5, PinMode.PWM), PinConfig(7, PinMode.DIGITAL_OUT)]
 PINS += [PinConfig(14, PinMode.ANALOG_IN)]
-Swarm = tuple[SimCoordinator, Gateway, dict[str, XBeeBoard], dict[str, SimBoard]]
-
-
-def _wait(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.01)
 
 
 @pytest.fixture
 def swarm(client_session: Callable[[], zenoh.Session]) -> Iterator[Swarm]:
     with ExitStack() as stack:
-        sims = {name: SimBoard(dt=0.05) for name in ADDRS}
-        remotes = [SimRemote(ADDRS[n], WireServerUart(sims[n]), node_id=n) for n in sims]
-        coordinator = stack.enter_context(SimCoordinator(remotes, api_mode=2, seed=7))
-        gateway = Gateway(
-            GatewayConfig(port="sim", api_mode=2, answer="at_once"),
-            bus.BusKeys(EXP),
-            ADDRS,
-            client_session(),
-            port_url=coordinator.url,
-            stats_period_s=0.1,
-        )
-        stack.enter_context(gateway)
-        agent_session = client_session()
-        boards = {}
-        for name in sims:
-            board = board_from_url(
-                f"xbee://{ADDRS[name]:016X}?timeout_s=0.3&retries=2",
-                session=agent_session,
-                experiment=EXP,
-                agent=name,
-            )
-            stack.callback(board.close)
-            board.open()
-            board.configure(PINS, watchdog_s=2.0)
-            boards[name] = board
-        yield coordinator, gateway, boards, sims
+        config = GatewayConfig(port="sim", api_mode=2, answer="at_once")
+        yield open_swarm(stack, client_session, EXP, ADDRS, config, seed=7, pins=PINS)
 
 
 def _tick_all(
     boards: Mapping[str, XBeeBoard], writes: Mapping[str, dict[int, int]]
 ) -> dict[str, TickReply | BaseException]:
-    """Every agent's exchange of one tick at once, as the agents' processes do."""
-    out: dict[str, TickReply | BaseException] = {}
-
-    def run(name: str) -> None:
-        try:
-            out[name] = boards[name].exchange(writes[name], [14])
-        except Exception as exc:  # reported to the test below
-            out[name] = exc
-
-    threads = [threading.Thread(target=run, args=(n,)) for n in writes]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(timeout=10.0)
-    assert len(out) == len(writes), "an exchange did not finish"
-    return out
+    return tick_all(boards, writes, [14])
 
 
 def _writes(k: int, names: list[str]) -> dict[str, dict[int, int]]:
@@ -204,7 +151,7 @@ def _writes(k: int, names: list[str]) -> dict[str, dict[int, int]]:
 def _applied(sims: Mapping[str, SimBoard], writes: Mapping[str, dict[int, int]]) -> None:
     """Pace the ticks to the radio: each robot drives this tick's outputs (answered at once,
     nothing else would: the answers do not wait for the air)."""
-    _wait(
+    wait_for(
         lambda: all({p: sims[n].outputs[p] for p in (5, 7)} == writes[n] for n in writes),
         5.0,
         "the tick's outputs on every robot",
@@ -238,7 +185,7 @@ def test_every_tick_answered_at_once_stale_refreshed_by_the_robots_own_replies(
     for k in range(8, 8 + 3 * PATIENCE_TICKS):
         results = _tick_all(boards, _writes(k, names))
         assert isinstance(results["r1"], TickReply)  # the others go on
-        _wait(lambda k=k: sims["r1"].outputs[5] == _writes(k, names)["r1"][5], 5.0, "r1")
+        wait_for(lambda k=k: sims["r1"].outputs[5] == _writes(k, names)["r1"][5], 5.0, "r1")
         if isinstance(results["r3"], BoardTimeoutError):
             break
     else:
@@ -276,11 +223,11 @@ def test_coordinator_unplugged_no_answer_from_old_samples_then_back(swarm: Swarm
     for board in boards.values():
         board.timeout_s, board.retries = 0.1, 0
     coordinator.unplug()
-    _wait(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
+    wait_for(lambda: not gateway.connected.is_set(), 5.0, "the gateway to notice the unplug")
     results = _tick_all(boards, _writes(3, names))  # no stale answers while it is away
     assert all(isinstance(r, BoardTimeoutError) for r in results.values()), results
     coordinator.replug()
-    _wait(gateway.connected.is_set, 5.0, "the gateway to reconnect")
+    wait_for(gateway.connected.is_set, 5.0, "the gateway to reconnect")
     for board in boards.values():
         board.timeout_s, board.retries = 0.3, 3
     for k in range(4, 7):
