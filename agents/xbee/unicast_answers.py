@@ -35,7 +35,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from hilswarm.agents.link.codec import FrameDecoder, MsgType, frame_payload, parse_tick_reply
+from hilswarm.agents.link.codec import (
+    FrameDecoder,
+    MsgType,
+    frame_payload,
+    parse_tick_reply,
+    pins_of_mask,
+)
 from hilswarm.agents.xbee.packer import EVENTS, Action, ToAgent, Unicast, stale_tick_reply
 
 #: A robot whose last this many TICKs brought no reply of its own is answered no more at once.
@@ -69,8 +75,7 @@ def _read_pins(payload: bytes) -> tuple[int, ...] | None:
     """The pins a TICK payload samples, ascending (``None``: too short to be a TICK)."""
     if len(payload) < _RMASK.stop:
         return None
-    mask = int.from_bytes(payload[_RMASK], "little")
-    return tuple(bit for bit in range(24) if mask >> bit & 1)
+    return tuple(pins_of_mask(int.from_bytes(payload[_RMASK], "little")))
 
 
 class UnicastAnswers:
