@@ -37,7 +37,7 @@ import os
 import statistics
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack, contextmanager, suppress
 from dataclasses import dataclass
@@ -193,10 +193,11 @@ def bcast_delivery_s(n: int) -> float:
     return tick_latency(budget, answer="at_once").radio_s
 
 
-def bcast_latency_bound(rate_hz: float, reply_every: int) -> int:
-    """Largest N whose broadcast tick (fill and drain included) fits the period."""
+def largest_within(model: Callable[[int], float], period_s: float) -> int:
+    """Largest N (at most 255) whose ``model(N)`` [s] fits ``period_s`` [s] (a latency bound:
+    each model grows with N)."""
     n = 0
-    while n < 255 and bcast_tick_s(n + 1, reply_every) <= 1.0 / rate_hz:
+    while n < 255 and model(n + 1) <= period_s:
         n += 1
     return n
 
@@ -470,10 +471,7 @@ def latency_bound(rate_hz: float) -> tuple[int, float]:
     on the host UART, the robot's UART both ways, its packetization timeout, the last RX frame
     and its TX status (the air alone is the throughput bound of :func:`bound`). Returns
     (N, fixed latency [s])."""
-    n = 0
-    while n < 255 and unicast_tick_s(n + 1) <= 1.0 / rate_hz:
-        n += 1
-    return n, 2 * unicast_tick_s(1) - unicast_tick_s(2)
+    return largest_within(unicast_tick_s, 1.0 / rate_hz), 2 * unicast_tick_s(1) - unicast_tick_s(2)
 
 
 def unicast_delivery_s(n: int) -> float:
@@ -493,9 +491,7 @@ def bench_capacity(
     n_bound, binding = bound(rate_hz)
     n_latency, fixed = latency_bound(rate_hz)
     if answer == "at_once":  # the outputs' delivery is the latency that must fit
-        n_latency = 0
-        while n_latency < 255 and unicast_delivery_s(n_latency + 1) <= 1.0 / rate_hz:
-            n_latency += 1
+        n_latency = largest_within(unicast_delivery_s, 1.0 / rate_hz)
     best = best_1pc = 0
     for n in range(1, n_bound + 2):
         run = ticks_on_time(endpoint, n, rate_hz, ticks, answer=answer, processes=processes)
@@ -539,15 +535,13 @@ def bench_broadcast(
 ) -> None:
     """Largest N (at most ``max_n``) with no late ticks by packed broadcast vs its bounds."""
     n_bound, binding = bcast_bound(rate_hz, reply_every)
-    n_latency = bcast_latency_bound(rate_hz, reply_every)
 
     def model(n: int) -> float:
+        """The latency that must fit the period: answering at once, the outputs' delivery."""
         return bcast_tick_s(n, reply_every) if answer == "wait" else bcast_delivery_s(n)
 
-    if answer == "at_once":  # the outputs' delivery is the latency that must fit
-        n_latency = 0
-        while n_latency < 255 and bcast_delivery_s(n_latency + 1) <= 1.0 / rate_hz:
-            n_latency += 1
+    n_latency = largest_within(model, 1.0 / rate_hz)
+
     best = best_1pc = best_2 = 0
     n = 1
     while n <= min(n_bound + 1, max_n):

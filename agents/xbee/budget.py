@@ -399,17 +399,14 @@ def tick_latency(
     reply = max(r.reply_bytes for r in robots)
     back = uart_s(reply + air.packetization_chars, ROBOT_BAUD)
     if budget.mode != "broadcast":
-        outputs = (
-            uart_s(tx + request, budget.baud)
-            + sum(
-                air.mean_unicast_s(r.request_bytes) + air.mean_unicast_s(r.reply_bytes)
-                for r in robots
-            )
-            + uart_s(request, ROBOT_BAUD)
-        )
+        # every robot's request on the air, and every robot's reply before the last request
+        air_s = sum(air.mean_unicast_s(r.request_bytes) for r in robots)
+        air_s += sum(air.mean_unicast_s(r.reply_bytes) for r in robots[:-1])
+        outputs = uart_s(tx + request, budget.baud) + air_s + uart_s(request, ROBOT_BAUD)
         if answer == "at_once":  # the last robot's own reply is not waited for
-            return TickLatency(outputs - air.mean_unicast_s(robots[-1].reply_bytes), "outputs", dt)
-        return TickLatency(outputs + back + uart_s(rx + reply + status, budget.baud), "answers", dt)
+            return TickLatency(outputs, "outputs", dt)
+        last = air.mean_unicast_s(robots[-1].reply_bytes) + back
+        return TickLatency(outputs + last + uart_s(rx + reply + status, budget.baud), "answers", dt)
     frames = bcast_frame_sizes([r.section_bytes for r in robots])
     outputs = sum(uart_s(tx + f, budget.baud) + air.mean_broadcast_s(f) for f in frames)
     outputs += uart_s(sum(frames), ROBOT_BAUD)

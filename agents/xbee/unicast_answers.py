@@ -35,11 +35,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from hilswarm.agents.errors import WireFormatError
 from hilswarm.agents.link.codec import (
     FrameDecoder,
     MsgType,
+    TickReplyMsg,
     frame_payload,
-    parse_tick_reply,
+    parse_payload,
     pins_of_mask,
 )
 from hilswarm.agents.xbee.packer import EVENTS, Action, ToAgent, Unicast, stale_tick_reply
@@ -98,14 +100,10 @@ class UnicastAnswers:
             kind = payload[0]
             if kind in (MsgType.HELLO, MsgType.CONFIG):
                 robot.samples.clear()  # a new board or new pins: fresh samples first
-            if kind == MsgType.TICK:
-                reads = _read_pins(payload)
-                if reads is not None:
-                    answer = self._tick(robot, payload[1], reads)
-                    if answer is not None:  # first: the agent need not wait for the write
-                        actions.append(answer)
-                    actions.append(Unicast(name, frame_payload(payload)))
-                    continue
+            if kind == MsgType.TICK and (reads := _read_pins(payload)) is not None:
+                answer = self._tick(robot, payload[1], reads)
+                if answer is not None:  # first: the agent need not wait for the write
+                    actions.append(answer)
             actions.append(Unicast(name, frame_payload(payload)))
         return actions
 
@@ -150,20 +148,20 @@ class UnicastAnswers:
             kind = payload[0]
             if kind == MsgType.ERROR and self._error(robot, payload[1]):
                 continue
-            if (
-                kind == MsgType.TICK_REPLY
-                and len(payload) >= 7
-                and not (len(payload) - 7) % 2
-                and self._fresh(robot, payload)
-            ):
+            if kind == MsgType.TICK_REPLY and self._fresh(robot, payload):
                 continue
             actions.append(ToAgent(name, frame_payload(payload)))
         return actions
 
     def _fresh(self, robot: _Robot, payload: bytes) -> bool:
         """The robot's own TICK_REPLY: keep its samples; True when its agent was answered at
-        once (the reply goes no further)."""
-        reply = parse_tick_reply(payload)
+        once (the reply goes no further). A malformed one goes on to the agent's board."""
+        try:
+            reply = parse_payload(payload)
+        except WireFormatError:
+            return False
+        if not isinstance(reply, TickReplyMsg):
+            return False
         flight = robot.in_flight.pop(reply.seq, None)
         robot.fresh += 1
         robot.unanswered = 0
