@@ -88,6 +88,7 @@ from hilswarm.agents.agent_config import (  # also this module's interface
     AgentConfigError,
     AgentHardware,
     build_hardware,
+    tick_phase_s,
 )
 from hilswarm.agents.agent_counters import AgentCounters
 from hilswarm.agents.credentials import Credentials
@@ -218,8 +219,15 @@ class Agent:
         #: Which tick runs when, with which inputs; guarded by the engine lock, which is held
         #: only for the engine's own short calls (never around board I/O or the controller).
         self.engine = TickEngine(
-            config.neighbours, config.agent_names, config.dt, config.lockstep_window
+            config.neighbours,
+            config.agent_names,
+            config.dt,
+            config.lockstep_window,
+            phase_s=tick_phase_s(config),
         )
+        #: A mocap pose source's ``tick_due`` (told each self-clocked tick's due time, so a
+        #: sense can wait for its own frame's pose), or ``None``.
+        self._tick_due_hint: Callable[[float], None] | None = None
         self._engine_lock = threading.Lock()
         #: The input and fault counters of the status messages.
         self.status_counters = AgentCounters(self.engine, self._engine_lock)
@@ -528,6 +536,7 @@ class Agent:
                 source.on_malformed = functools.partial(self._count_malformed, "mocap")
             self._entities.extend(attach(session, self.keys))
             source.wait_first()
+        self._tick_due_hint = getattr(source, "tick_due", None)
 
     def _start_worker(self) -> None:
         with self._engine_lock:
@@ -790,6 +799,9 @@ class Agent:
         if self.lifecycle.state_id == "armed":
             self._transition("start", "")
         k, t = tick.k, tick.t
+        hint = self._tick_due_hint
+        if hint is not None and tick.due == tick.due:  # self-clocked (not NaN)
+            hint(tick.due)
         y_payload, report, u_new, x_hat = self.tick_work(
             k, t, skipped=tick.skipped, neighbours=tick.neighbours
         )

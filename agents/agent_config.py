@@ -195,6 +195,16 @@ def build_hardware(
     return AgentHardware(vehicle=vehicle, board=board, model=model)
 
 
+def tick_phase_s(config: AgentConfig) -> float:
+    """How long after the swarm's due times this agent's self-clocked ticks are due [s]
+    (``[mocap] tick_spread_frames``; 0 without it)."""
+    if config.mocap is None:
+        return 0.0
+    from hilswarm.agents.mocap.config import MocapSettings  # noqa: PLC0415 - mocap runs only
+
+    return MocapSettings.from_dict(config.mocap).tick_phase_s(config.index)
+
+
 def mocap_pose_source(config: AgentConfig, vehicle: Any, plant: Any | None) -> Any:
     """The bus pose source of ``config``'s body; with ``system = "sim"`` and a simulated plant
     it also feeds the plant's true pose to the simulator."""
@@ -213,6 +223,7 @@ def mocap_pose_source(config: AgentConfig, vehicle: Any, plant: Any | None) -> A
         # Ticks locked to the frames: a sense may wait, bounded, for its frame's pose.
         frame_period_s=1.0 / settings.rate_hz,
         pose_wait_s=settings.pose_wait_s,
+        tick_lag_s=settings.tick_lag_s,
     )
     source.add_telemetry(vehicle.telemetry)
     return source

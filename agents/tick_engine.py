@@ -57,7 +57,9 @@ Contract (``k``: tick index; ``window``: the experiment's ``lockstep_window`` [t
   its due time with the neighbours' ``y_{k-1}`` that are in; one that is not counts as no
   data (``None``) and is noted in :attr:`TickEngine.inputs_missing` (unless the manager
   reported that neighbour lost), which the agent publishes, so the record says which inputs
-  each tick used.
+  each tick used. With a *phase* (``phase_s``, under one period: ``[mocap]
+  tick_spread_frames``) this agent's tick ``j`` is due ``phase_s`` after the swarm's due time
+  for ``j``; the schedule's checks above stay on the swarm's times.
 
 Counters (:attr:`TickEngine.dropped`, :attr:`TickEngine.stale`) only grow; the agent adds the
 malformed-message counts of its decoders and publishes both in its status messages.
@@ -165,12 +167,15 @@ class Tick(NamedTuple):
         skipped: ticks dropped before this one because the agent fell behind (realtime).
         neighbours: each neighbour's ``y_{k-1}`` (``None``: no data), or ``None`` when the
             tick gathers nothing (tick 0, or not actuating).
+        due: self-clocked: when this agent's tick was due [s, the agent's monotonic clock],
+            its phase included; NaN for a tick message's tick.
     """
 
     k: int
     t: float
     skipped: int
     neighbours: dict[str, np.ndarray | None] | None
+    due: float = math.nan
 
 
 class TickEngine:
@@ -182,15 +187,27 @@ class TickEngine:
             agents by index).
         dt: control period [s].
         window: the experiment's lockstep window [ticks] (>= 1).
+        phase_s: self-clocked: this agent ticks this long after the swarm's due times [s]
+            (0 <= phase_s < dt; ``[mocap] tick_spread_frames``).
     """
 
     def __init__(
-        self, neighbours: Sequence[str], agent_names: Sequence[str], dt: float, window: int
+        self,
+        neighbours: Sequence[str],
+        agent_names: Sequence[str],
+        dt: float,
+        window: int,
+        *,
+        phase_s: float = 0.0,
     ) -> None:
         if not (math.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be > 0 [s], got {dt!r}")
         if not (isinstance(window, int) and window >= 1):
             raise ValueError(f"window must be an integer >= 1 [ticks], got {window!r}")
+        if not (math.isfinite(phase_s) and 0.0 <= phase_s < dt):
+            raise ValueError(f"phase_s must be in [0, dt) [s], got {phase_s!r}")
+        #: Self-clocked: this agent's ticks are due this long after the swarm's [s].
+        self.phase_s = float(phase_s)
         self.neighbours = tuple(neighbours)
         self.agent_names = tuple(agent_names)
         self.dt = float(dt)
@@ -370,7 +387,13 @@ class TickEngine:
         upcoming = self._upcoming()
         if upcoming > self._last:
             return None
-        return self._due(upcoming)
+        return self._due(upcoming) + self.phase_s
+
+    @property
+    def taken_due(self) -> float:
+        """Self-clocked: when this agent's last tick taken was due [s], its phase included
+        (NaN before the first)."""
+        return self._taken_due + self.phase_s
 
     def _upcoming(self) -> int:
         """Self-clocked: the next tick this agent may run."""
@@ -502,6 +525,7 @@ class TickEngine:
         due = self.next_due()
         if due is None or now < due:
             return None
+        now -= self.phase_s  # on the swarm's times from here on
         upcoming, dt = self._upcoming(), self.dt
         if now >= self._t0 + max(upcoming, self._first) * dt:  # on the anchor in force
             k = max(upcoming, self._first, math.floor((now - self._t0) / dt))
@@ -522,7 +546,7 @@ class TickEngine:
         self.k = k
         if k + 1 >= self._first:
             self._prev = None  # the anchor before is done with
-        return Tick(k, k * self.dt, skipped, neighbours)
+        return Tick(k, k * self.dt, skipped, neighbours, self.taken_due)
 
     def gather(
         self, k_prev: int, missing: frozenset[str], stale_ok: bool, *, wait: bool = True

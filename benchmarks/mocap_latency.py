@@ -114,8 +114,8 @@ def percentile_ms(values: np.ndarray, q: float) -> float | None:
 
 def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float,
                     seconds: float, locked: bool = True, lag_ms: float | None = None,
-                    pose_wait_ms: float | None = None,
-                    tick_frames_only: bool = False) -> str:  # fmt: skip
+                    pose_wait_ms: float | None = None, tick_frames_only: bool = False,
+                    tick_spread: int = 1) -> str:  # fmt: skip
     """The experiment: ``agents`` Frisbee bots in a lead/follow chain, poses from ``sim``.
 
     Agent ``a00`` drives a 1 m square of waypoints; agent ``aNN`` follows ``a(NN-1)`` at 0.3 m
@@ -123,7 +123,8 @@ def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float
     simulated camera latency and no dropouts: the figures are the software path's. ``locked``:
     the ticks in step with the frames (``[mocap] tick_lock``, the default), ``lag_ms`` its
     ``tick_lag_ms``, ``pose_wait_ms`` the agents' ``pose_wait_ms`` (``None``: the defaults),
-    ``tick_frames_only`` the mocap process's ``tick_frames_only``.
+    ``tick_frames_only`` the mocap process's ``tick_frames_only``, ``tick_spread`` the
+    ticks' ``tick_spread_frames``.
     """
     names = [f"a{i:02d}" for i in range(agents)]
     rows = [[1 if j == i - 1 else 0 for j in range(agents)] for i in range(agents)]
@@ -147,6 +148,7 @@ def experiment_text(*, agents: int, mocap_rate_hz: float, control_rate_hz: float
         *([] if lag_ms is None else [f"tick_lag_ms = {lag_ms!r}"]),
         *([] if pose_wait_ms is None else [f"pose_wait_ms = {pose_wait_ms!r}"]),
         *(["tick_frames_only = true"] if tick_frames_only else []),
+        *([f"tick_spread_frames = {tick_spread}"] if tick_spread > 1 else []),
         "",
         "[mocap.sim]",
         "noise_std_m = 0.002",
@@ -278,8 +280,8 @@ def ticks_locked(out: Path) -> float | None:
 
 def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate_hz: float,
                        *, locked: bool = True, lag_ms: float | None = None,
-                       pose_wait_ms: float | None = None,
-                       tick_frames_only: bool = False) -> dict[str, Any]:  # fmt: skip
+                       pose_wait_ms: float | None = None, tick_frames_only: bool = False,
+                       tick_spread: int = 1) -> dict[str, Any]:  # fmt: skip
     """One ``hilswarm run`` at mocap rate ``rate_hz``: frame time -> controller figures."""
     load = load_1min()
     with tempfile.TemporaryDirectory(prefix="mocap_latency-") as tmp:
@@ -289,7 +291,7 @@ def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate
             experiment_text(agents=agents, mocap_rate_hz=rate_hz,
                             control_rate_hz=control_rate_hz, seconds=WARMUP_S + seconds,
                             locked=locked, lag_ms=lag_ms, pose_wait_ms=pose_wait_ms,
-                            tick_frames_only=tick_frames_only)
+                            tick_frames_only=tick_frames_only, tick_spread=tick_spread)
         )  # fmt: skip
         began = time.monotonic()
         cpu_before = children_cpu_s()
@@ -335,6 +337,7 @@ def measure_controller(rate_hz: float, agents: int, seconds: float, control_rate
         "ticks_locked": locked_fraction,
         "pose_wait_ms": round(settings.pose_wait_s * 1e3, 3),
         "tick_frames_only": tick_frames_only,
+        "tick_spread_frames": tick_spread,
         "run_cpu_s": round(cpu, 2),
         "load_1min": load,
         "run_exit": status,
@@ -486,6 +489,14 @@ def main(argv: list[str] | None = None) -> int:
         help="[mocap] tick_frames_only = true: only the poses of the frames the ticks use",
     )
     parser.add_argument(
+        "--tick-spread",
+        type=int,
+        default=1,
+        metavar="N",
+        help="[mocap] tick_spread_frames: the agents' ticks spread over N frames (default 1: "
+        "all at once); e.g. --tick-spread 8 --lag-ms 0.25 --pose-wait-ms 3.5 at 240 Hz",
+    )
+    parser.add_argument(
         "--no-subscriber",
         action="store_true",
         help="skip the subscriber-level figure (mocap path without a run)",
@@ -495,6 +506,8 @@ def main(argv: list[str] | None = None) -> int:
     counts = args.agents if args.agents is not None else [4 if args.short else 16]
     if any(n < 1 for n in counts):
         parser.error(f"--agents must be >= 1, got {counts}")
+    if args.tick_spread < 1:
+        parser.error(f"--tick-spread must be >= 1 [frames], got {args.tick_spread}")
     one, five, fifteen = os.getloadavg()
     print(f"load at start: {one:.2f} {five:.2f} {fifteen:.2f} (1/5/15 min), "
           f"{os.cpu_count()} cores; latency on CLOCK_MONOTONIC (the simulator's frame time "
@@ -504,6 +517,7 @@ def main(argv: list[str] | None = None) -> int:
         result = measure_controller(
             rate, agents, seconds, args.control_rate, locked=not args.free, lag_ms=args.lag_ms,
             pose_wait_ms=args.pose_wait_ms, tick_frames_only=args.tick_frames_only,
+            tick_spread=args.tick_spread,
         )  # fmt: skip
         tail = result.pop("_tail")
         subscriber: dict[str, Any] = {
@@ -528,6 +542,7 @@ def main(argv: list[str] | None = None) -> int:
             + (
                 f"ticks locked to the frames ({result['ticks_locked']} of them), lag "
                 f"{result['tick_lag_ms']} ms, pose wait at most {result['pose_wait_ms']} ms"
+                + (f", spread over {args.tick_spread} frames" if args.tick_spread > 1 else "")
                 if result["locked"]
                 else "ticks free of the frames"
             )

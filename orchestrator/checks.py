@@ -17,8 +17,8 @@ in ``[agents.*]``), then, when that succeeds, checks every agent against the cod
 * the board watchdog is longer than a control period;
 * with ``[mocap] system = "sim"`` every agent's board is simulated (the simulated cameras see
   only simulated plants); a real mocap system sees every agent's body now; ticks no faster
-  than the camera frames, and ``tick_frames_only`` only where the manager's schedule is known
-  in advance (warnings);
+  than the camera frames, and ``tick_frames_only`` and ``tick_spread_frames`` only where the
+  manager's schedule is known in advance (warnings);
 * with ``xbee://`` links, the gateway's radio budget and, in realtime, a tick's latency
   through the radio (:mod:`~hilswarm.orchestrator.xbee_check`).
 
@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -75,6 +76,11 @@ logger = logging.getLogger(__name__)
 EXCLUSIVE_LINK_KINDS = ("serial",)
 #: Runs longer than this many ticks are reported as a warning (recording size, run time).
 MANY_TICKS = 5_000_000
+#: ``[mocap] tick_spread_frames``: warn when the last phase's agents have less than this share of
+#: the control period to answer (docs/mocap.md: 16 agents at 240 Hz frames and 23 Hz control,
+#: a spread of 8 frames, 23 % left, halved the pose latency's p99; 10 frames, 4 % left,
+#: doubled it).
+SPREAD_ANSWER_FRACTION = 0.2
 
 
 @dataclass
@@ -210,26 +216,36 @@ def _check_mocap_bodies(parts: ExperimentParts, report: CheckReport) -> None:
 
 def _check_mocap_timing(parts: ExperimentParts, report: CheckReport) -> None:
     """Ticks faster than the camera frames repeat poses and cannot lock to the frames;
-    ``tick_frames_only`` needs the manager's schedule, which tick messages replace."""
+    ``tick_frames_only`` and ``tick_spread_frames`` need the manager's schedule, which tick
+    messages replace."""
     mocap, settings = parts.mocap, parts.settings
     if mocap is None or settings is None:
         return
     realtime = settings.mode == "realtime"  # (lockstep with [mocap] is refused elsewhere)
-    if (
-        realtime
-        and mocap.tick_frames_only
-        and not self_clocked(settings.mode, settings.realtime_clock, parts.gateway)
-    ):
+    if realtime and not self_clocked(settings.mode, settings.realtime_clock, parts.gateway):
         driver = "an XBee [gateway]" if parts.gateway is not None else 'realtime_clock = "manager"'
-        report.warnings.append(
-            Problem(
-                parts.path,
-                "mocap.tick_frames_only",
-                f"has no effect here: {driver} drives the ticks with tick messages, which "
-                "tell no tick in advance, so every frame's poses are published "
-                '(docs/mocap.md, "Only the frames the ticks use")',
+        if mocap.tick_frames_only:
+            report.warnings.append(
+                Problem(
+                    parts.path,
+                    "mocap.tick_frames_only",
+                    f"has no effect here: {driver} drives the ticks with tick messages, which "
+                    "tell no tick in advance, so every frame's poses are published "
+                    '(docs/mocap.md, "Only the frames the ticks use")',
+                )
             )
-        )
+        if mocap.tick_spread_frames > 1:
+            report.warnings.append(
+                Problem(
+                    parts.path,
+                    "mocap.tick_spread_frames",
+                    f"has no effect here: {driver} drives the ticks with tick messages, and "
+                    "every agent ticks when its message comes "
+                    '(docs/mocap.md, "Ticks spread over the frames")',
+                )
+            )
+    if realtime:
+        _check_spread_margin(parts, report)
     if settings.rate_hz <= mocap.rate_hz:
         return
     report.warnings.append(
@@ -242,6 +258,34 @@ def _check_mocap_timing(parts: ExperimentParts, report: CheckReport) -> None:
             "sense the last one again), and the ticks cannot lock to the frames "
             f"(docs/mocap.md); use rate_hz <= {mocap.rate_hz:g} Hz, or a faster frame rate if "
             "the system has one",
+        )
+    )
+
+
+def _check_spread_margin(parts: ExperimentParts, report: CheckReport) -> None:
+    """``tick_spread_frames``: the agents of the last phase tick ``N - 1`` frames after the
+    swarm's due time, up to one frame later again (a locked tick sits on the first frame at or
+    after its grid point), and must answer before the swarm's next tick: warn when that leaves
+    them under :data:`SPREAD_ANSWER_FRACTION` of the control period."""
+    mocap, settings = parts.mocap, parts.settings
+    spread = mocap.tick_spread_frames
+    if spread <= 1 or not mocap.tick_lock:
+        return
+    period = 1.0 / settings.rate_hz
+    answer = period - spread / mocap.rate_hz
+    if not 0.0 < answer < SPREAD_ANSWER_FRACTION * period:
+        return  # fits comfortably, or refused already (it does not fit in one period)
+    fitting = max(1, math.floor((1.0 - SPREAD_ANSWER_FRACTION) * mocap.rate_hz / settings.rate_hz))
+    report.warnings.append(
+        Problem(
+            parts.path,
+            "mocap.tick_spread_frames",
+            f"{spread} frames at {mocap.rate_hz:g} Hz leave the last agents "
+            f"{answer * 1e3:.3g} ms ({answer / period:.0%} of the {period * 1e3:.3g} ms control "
+            "period) to answer before the swarm's next tick (which waits for no input): on a "
+            f"busy machine their outputs come late; {fitting} frames leave "
+            f"{SPREAD_ANSWER_FRACTION:.0%} or more "
+            '(docs/mocap.md, "Ticks spread over the frames")',
         )
     )
 

@@ -32,6 +32,7 @@ need the vehicle and controller classes live in :mod:`hilswarm.orchestrator.chec
 
 from __future__ import annotations
 
+import math
 import re
 import tomllib
 from collections.abc import Container, Mapping, Sequence
@@ -482,6 +483,8 @@ class _Loader:
             self.problem(
                 "experiment.mode", 'a [mocap] system runs on the wall clock; use mode = "realtime"'
             )
+        if mocap is not None and settings is not None:
+            self._mocap_spread(mocap, settings)
         bodies: dict[str, str] = {}
         for name, spec in self.parts.agents.items():
             other = bodies.setdefault(spec.body, name)
@@ -490,6 +493,30 @@ class _Loader:
                     f"agents.{name}.mocap_body", f"body {spec.body!r} is already agent {other!r}'s"
                 )
         return mocap
+
+    def _mocap_spread(self, mocap: Any, settings: ExperimentSection) -> None:
+        """``tick_spread_frames``: counted in frames of locked ticks, every tick of one control
+        period within that period, and not with ``tick_frames_only`` (docs/mocap.md)."""
+        spread = mocap.tick_spread_frames
+        if spread <= 1:
+            return
+        key = "mocap.tick_spread_frames"
+        if not mocap.tick_lock:
+            self.problem(key, "needs tick_lock = true (the spread is counted in locked frames)")
+        if mocap.tick_frames_only:
+            self.problem(
+                key,
+                "does not go with tick_frames_only = true: the mocap process publishes the "
+                "frames of the swarm's due times, not of each agent's phase",
+            )
+        span_ms, period_ms = 1000.0 * spread / mocap.rate_hz, 1000.0 / settings.rate_hz
+        if span_ms >= period_ms:
+            self.problem(
+                key,
+                f"{spread} frames ({span_ms:.3g} ms at [mocap] rate_hz = {mocap.rate_hz:g}) do "
+                f"not fit in one control period ({period_ms:.3g} ms at rate_hz = "
+                f"{settings.rate_hz:g}); at most {math.ceil(mocap.rate_hz / settings.rate_hz) - 1}",
+            )
 
     def _gateway(self) -> Any:
         """``[gateway]`` as a GatewayConfig (``None`` when absent)."""

@@ -258,6 +258,10 @@ class MocapSection(_Table):
     tick_frames_only: bool = False
     """In a self-clocked run, publish only the poses of the frames the ticks use and a
     keep-alive (less CPU; default: every frame's)."""
+    tick_spread_frames: int = Field(1, ge=1, le=1000)
+    """With tick_lock, in a self-clocked run: the agents' ticks spread over this many
+    consecutive frames, agent i (graph order) ticking (i mod N) frame periods after the
+    swarm's due time, so that fewer agents sense at each frame (default 1: all at once)."""
     sim: MocapSimSection | None = None
     """system = "sim" only: the simulated cameras."""
 

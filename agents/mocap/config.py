@@ -15,6 +15,7 @@
     # tick_lag_ms = 2.0     # a tick this long after its frame reaches the host [ms]
     # pose_wait_ms = 1.5    # a sense waits at most this long for an overdue pose [ms] (0)
     # tick_frames_only = false  # only the poses of the frames the ticks use (less CPU)
+    # tick_spread_frames = 1    # agent i ticks (i mod N) frames after the swarm's due time
 
     [mocap.sim]             # system = "sim" only: what the simulated cameras do
     noise_std_m = 0.002
@@ -79,6 +80,7 @@ class MocapSettings:
     tick_lag_ms: float | None = None
     pose_wait_ms: float | None = None
     tick_frames_only: bool = False
+    tick_spread_frames: int = 1
     sim: SimCameras = field(default_factory=SimCameras)
 
     @property
@@ -104,6 +106,15 @@ class MocapSettings:
         if not self.tick_lock or self.pose_wait_ms is None:
             return 0.0
         return self.pose_wait_ms * 1e-3
+
+    def tick_phase_s(self, index: int) -> float:
+        """How long after the swarm's due time the agent of graph index ``index`` ticks [s]:
+        ``index mod tick_spread_frames`` frame periods (``[mocap] tick_spread_frames``,
+        docs/mocap.md "Ticks spread over the frames"); 0 without a spread or without
+        ``tick_lock``."""
+        if not self.tick_lock or self.tick_spread_frames <= 1:
+            return 0.0
+        return (index % self.tick_spread_frames) / self.rate_hz
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able data (for command lines); inverse of :meth:`from_dict`."""

@@ -43,6 +43,15 @@ poses older). Only arrival times on this agent's own clock are compared,
 so it holds for agents on other hosts too. The wait runs on the agent's worker thread (never
 a bus thread); when frames stop, each sense waits at most ``pose_wait_s`` until tracking is
 declared lost (``hold_frames``).
+
+**Knowing the tick's frame** (self-clocked runs). A self-clocked agent knows when its tick was
+due (:meth:`MocapPoseSource.tick_due`), so it knows its frame: the one that reached the host
+``tick_lag_s`` before (its phase included, ``[mocap] tick_spread_frames``). Such agents run
+on the host of the orchestrator, whose mocap process stamps each frame's arrival
+(``received_s``) on the same CLOCK_MONOTONIC. So the sense waits (at most ``pose_wait_s``)
+exactly when the newest pose reached the mocap process more than half a frame period before
+the tick's frame did: the previous frame's, or older, whatever the lag. The rule above, on
+arrival times only, is kept for ticks driven by tick messages.
 """
 
 from __future__ import annotations
@@ -129,6 +138,7 @@ class MocapPoseSource:
         clock: Callable[[], float] = time.monotonic,
         frame_period_s: float = 0.0,
         pose_wait_s: float = 0.0,
+        tick_lag_s: float = 0.0,
     ) -> None:
         self.body = bus.check_key_name(body, what="mocap body")
         self.hold_frames = int(hold_frames)
@@ -145,6 +155,11 @@ class MocapPoseSource:
         self.frame_period_s = float(frame_period_s)
         #: Bound on a sense's wait for its tick's frame [s] (0: never waits; module docstring).
         self.pose_wait_s = float(pose_wait_s) if frame_period_s > 0.0 else 0.0
+        #: Locked ticks are due this long after their frame reached the host [s].
+        self.tick_lag_s = float(tick_lag_s)
+        # When the next sense's frame reached the mocap process [s, CLOCK_MONOTONIC]; NaN:
+        # not known (tick messages), the arrival rule applies (module docstring).
+        self._frame_expected = math.nan
         #: Senses that waited for their frame's pose and got it / waited in vain.
         self.pose_waits = 0
         self.pose_wait_timeouts = 0
@@ -301,21 +316,42 @@ class MocapPoseSource:
             poses[agent] = None if lost is not None or latest is None else latest[0].pose.copy()
         return poses
 
+    def tick_due(self, due_s: float) -> None:
+        """The next sense is that of a tick due at ``due_s`` [s, this host's CLOCK_MONOTONIC]
+        (a self-clocked agent tells it before each tick): its frame reached the host
+        :attr:`tick_lag_s` before (module docstring, "Knowing the tick's frame")."""
+        self._frame_expected = due_s - self.tick_lag_s
+
     def _await_frame(self) -> float:
         """Wait, bounded by :attr:`pose_wait_s`, for the pose of the tick's frame when the
-        newest one arrived over one frame period ago (module docstring). Returns the time
-        waited [s]; runs on the agent's worker thread."""
+        newest one is not it (module docstring). Returns the time waited [s]; runs on the
+        agent's worker thread."""
         latest = self._latest
+        expected, self._frame_expected = self._frame_expected, math.nan  # this sense's only
         if latest is None or self.pose_wait_s <= 0.0:
             return 0.0
         start = self._clock()
-        if start - latest[1] <= self.frame_period_s:
-            return 0.0  # no newer frame's pose is overdue
-        frame, deadline = latest[0].frame, start + self.pose_wait_s
+        if math.isfinite(expected):  # the tick's frame is known: wait for a pose of it
+            since = expected - 0.5 * self.frame_period_s
+            if latest[0].received_s >= since:
+                return 0.0
+
+            def arrived(newest: tuple[message.BodyPose, float]) -> bool:
+                return newest[0].received_s >= since
+
+        else:  # tick messages: the next frame's pose is overdue after one frame period
+            if start - latest[1] <= self.frame_period_s:
+                return 0.0
+            frame = latest[0].frame
+
+            def arrived(newest: tuple[message.BodyPose, float]) -> bool:
+                return newest[0].frame != frame
+
+        deadline = start + self.pose_wait_s
         for _ in range(_POSE_WAIT_WAKES):
             self._fresh.clear()
             newest = self._latest
-            if newest is not None and newest[0].frame != frame:
+            if newest is not None and arrived(newest):
                 self.pose_waits += 1
                 return self._clock() - start
             remaining = deadline - self._clock()

@@ -27,8 +27,10 @@ DT = 0.01
 NAMES = ("a", "b", "c")
 
 
-def engine(window: int = 8, neighbours: tuple[str, ...] = ("a", "c")) -> TickEngine:
-    e = TickEngine(neighbours, NAMES, DT, window)
+def engine(
+    window: int = 8, neighbours: tuple[str, ...] = ("a", "c"), phase_s: float = 0.0
+) -> TickEngine:
+    e = TickEngine(neighbours, NAMES, DT, window, phase_s=phase_s)
     e.running = True
     return e
 
@@ -320,6 +322,33 @@ def test_a_moved_anchor_arriving_early_keeps_the_ticks_before_it_on_time() -> No
     tick = e.take(gather=False, now=moved + 3 * DT)
     assert (tick.k, tick.skipped) == (3, 0)
     assert e.next_due() == pytest.approx(moved + 4 * DT)
+
+
+def test_a_phase_makes_each_tick_due_that_long_after_the_swarms() -> None:
+    """``phase_s`` (``[mocap] tick_spread_frames``): tick k is due at ``t0 + k dt + phase``,
+    also across a moved anchor; the tick's ``due`` says when; tick messages have none."""
+    phase = 0.4 * DT
+    e = clocked(phase_s=phase)
+    assert e.next_due() == pytest.approx(T0 + phase)
+    assert e.take(gather=False, now=T0 + phase - 1e-6) is None  # the swarm's due time: not yet
+    tick = e.take(gather=False, now=T0 + phase)
+    assert (tick.k, tick.skipped) == (0, 0) and tick.due == pytest.approx(T0 + phase)
+    assert e.take(gather=False, now=T0 + DT + phase - 1e-6) is None  # not tick 1 yet
+    tick = e.take(gather=False, now=T0 + 1.9 * DT)  # between tick 1 (+phase) and tick 2's
+    assert (tick.k, tick.skipped) == (1, 0) and tick.due == pytest.approx(T0 + DT + phase)
+    moved = T0 + 0.3 * DT  # the frame lock moves the anchor from tick 3 on
+    assert e.on_schedule(3, 10**6, moved, DT, arrived=T0 + 1.95 * DT)
+    assert e.next_due() == pytest.approx(T0 + 2 * DT + phase)  # tick 2 on the old anchor
+    assert e.take(gather=False, now=T0 + 2 * DT + phase).k == 2
+    assert e.next_due() == pytest.approx(moved + 3 * DT + phase)
+    tick = e.take(gather=False, now=moved + 3 * DT + phase)
+    assert (tick.k, tick.skipped) == (3, 0) and e.taken_due == tick.due
+    ticked = engine()
+    ticked.on_tick(0, 0.0, (), realtime=True, arrived=T0)
+    assert math.isnan(ticked.take(gather=False).due)  # a tick message's: no due time
+    for bad in (-1e-3, DT, math.nan):
+        with pytest.raises(ValueError, match="phase_s"):
+            TickEngine((), NAMES, DT, 8, phase_s=bad)
 
 
 def test_forged_or_odd_schedules_are_rejected_and_counted() -> None:

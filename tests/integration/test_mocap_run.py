@@ -147,6 +147,35 @@ def test_with_tick_frames_only_fewer_poses_go_out_and_tracking_loss_is_unchanged
     assert frames - published >= 0.3 * 5 * len(ks), (line, len(ks))
 
 
+def test_spread_ticks_sense_their_own_frames(runs: list[RunProcess], tmp_path: Path) -> None:
+    """``tick_spread_frames = 3``: the leader, f1 and f2 (graph indices 0, 1, 2) tick 0, 1 and
+    2 frame periods after the swarm's due time, so at one tick k each senses the pose of a
+    frame one later than the agent before it; with ``pose_wait_ms`` each waits for its own
+    frame's pose (a fresh pose, under two frame periods old), and the run is on time."""
+    experiment = variant(
+        tmp_path,
+        **{"hold_frames = 50 ": "tick_spread_frames = 3\ntick_lag_ms = 1.0\n"
+                                "pose_wait_ms = 8.0\nhold_frames = 50 "},
+    )  # fmt: skip
+    run = RunProcess(tmp_path, experiment, "--duration", "4")
+    runs.append(run)
+    assert run.wait(RUN_TIMEOUT_S) == 0, run.output()
+    recording = read_recording(run.out)
+    frames: dict[str, dict[int, int]] = {}
+    for agent in ("leader", "f1", "f2"):
+        assert np.all(np.isfinite(outputs(recording, agent))), agent
+        rows = recording[f"/{agent}/telemetry/mocap"]
+        frames[agent] = {r["k"]: r["frame"] for r in rows}
+        latency = np.array([r["latency_s"] for r in rows])
+        # 100 Hz frames: its own frame's pose (the simulated camera's 3 ms and the 1 ms lag)
+        assert np.median(latency) < 0.02, (agent, np.median(latency))
+    ks = sorted(set(frames["leader"]) & set(frames["f1"]) & set(frames["f2"]))
+    assert len(ks) >= 60, len(ks)
+    for agent, phase in (("f1", 1), ("f2", 2)):
+        steps = [frames[agent][k] - frames["leader"][k] for k in ks]
+        assert np.median(steps) == phase, (agent, steps)
+
+
 def test_the_mocap_server_lost_stops_the_run_and_no_stale_pose_is_used(
     runs: list[RunProcess], tmp_path: Path
 ) -> None:

@@ -267,3 +267,38 @@ def test_the_pose_wait_setting_and_its_default(tmp_path: Path) -> None:
     unlocked = "pose_wait_ms = 5.0\ntick_lock = false"
     experiment, problems = parse_experiment(demo_with(tmp_path, unlocked))
     assert not problems and experiment.mocap.pose_wait_s == 0.0  # only with locked ticks
+
+
+def test_the_spread_setting_gives_each_agent_its_phase(tmp_path: Path) -> None:
+    """``tick_spread_frames``: agent i (graph order) ticks (i mod N) frame periods late."""
+    experiment, problems = parse_experiment(demo_with(tmp_path, "tick_spread_frames = 2"))
+    assert not problems, problems
+    mocap = experiment.mocap
+    assert mocap.tick_spread_frames == 2
+    assert [mocap.tick_phase_s(i) for i in range(4)] == pytest.approx([0, 0.01, 0, 0.01])
+    assert MocapSettings.from_dict(mocap.to_dict()) == mocap
+    experiment, problems = parse_experiment(demo_with(tmp_path, "tick_lag_ms = 2.0"))
+    assert not problems and experiment.mocap.tick_spread_frames == 1  # the default: none
+    assert experiment.mocap.tick_phase_s(5) == 0.0
+    unlocked = MocapSettings(system="sim", tick_lock=False, tick_spread_frames=3)
+    assert unlocked.tick_phase_s(1) == 0.0
+
+
+@pytest.mark.parametrize(
+    ("lines", "reason"),
+    [
+        # 100 Hz frames, 20 Hz control: 5 frames per period, a spread of at most 4
+        ("tick_spread_frames = 5", "5 frames (50 ms at [mocap] rate_hz = 100) do not fit in "
+                                   "one control period (50 ms at rate_hz = 20); at most 4"),
+        ("tick_spread_frames = 0", "out of range; expected tick_spread_frames >= 1"),
+        ("tick_spread_frames = 2\ntick_lock = false", "needs tick_lock = true"),
+        ("tick_spread_frames = 2\ntick_frames_only = true", "does not go with tick_frames_only"),
+    ],
+)  # fmt: skip
+def test_a_spread_that_cannot_work_is_refused(tmp_path: Path, lines: str, reason: str) -> None:
+    _, problems = parse_experiment(demo_with(tmp_path, lines))
+    assert any(p.key == "mocap.tick_spread_frames" and reason in p.message for p in problems), (
+        problems
+    )
+    fits, problems = parse_experiment(demo_with(tmp_path, "tick_spread_frames = 4"))
+    assert not problems and fits.mocap.tick_spread_frames == 4

@@ -263,6 +263,47 @@ def test_a_sense_waits_bounded_for_an_overdue_pose(router: list[str]) -> None:
         rig.close()
 
 
+def test_a_sense_told_its_ticks_due_time_waits_for_that_frames_pose(router: list[str]) -> None:
+    """A self-clocked tick (``tick_due``): the sense waits exactly when the newest pose reached
+    the mocap process over half a frame period before the tick's frame did (due minus the
+    lag), whatever the arrival times; at most ``pose_wait_s``; each hint is for one sense."""
+    period, bound = 0.1, 0.35  # 10 Hz frames; a bound over the frames the test waits for
+    rig = Rig(router, SimSettings(bodies=("f1",), rate_hz=10.0), hold_frames=50,
+              pose_wait_s=bound)  # fmt: skip
+    source = rig.source
+    source.tick_lag_s = 0.02
+    try:
+        rig.sim.set_truth("f1", np.zeros(6))
+        source.wait_first()
+        newest = source._latest[0]
+        # The tick of the newest frame (its pose reached the mocap process then): no wait.
+        source.tick_due(newest.received_s + source.tick_lag_s)
+        assert np.all(np.isfinite(source.pose()))
+        assert source.pose_waits == source.pose_wait_timeouts == 0
+        # The tick of the frame after next: its pose is not in yet; the sense waits for it.
+        newest = source._latest[0]
+        source.tick_due(newest.received_s + 2 * period + source.tick_lag_s)
+        assert np.all(np.isfinite(source.pose()))
+        assert source.pose_waits == 1 and source.pose_wait_timeouts == 0
+        used = source._latest[0]
+        assert used.frame >= newest.frame + 2
+        assert used.received_s >= newest.received_s + 1.5 * period
+        source.record(0, 0.0)
+        assert 0.0 < rig.telemetry["mocap"].field("pose_wait_s")[-1] <= bound + 0.05
+        # No hint (a tick message's tick): the arrival rule, and the newest pose is young.
+        assert np.all(np.isfinite(source.pose())) and source.pose_waits == 1
+
+        rig.process.stop()  # no more frames: the told sense gives up at the bound
+        rig.thread.join(10.0)
+        source.tick_due(source._latest[0].received_s + period + source.tick_lag_s)
+        began = time.monotonic()
+        assert np.all(np.isfinite(source.pose()))  # within hold_s: the newest pose, held
+        assert time.monotonic() - began >= bound
+        assert source.pose_wait_timeouts == 1 and not rig.lost
+    finally:
+        rig.close()
+
+
 def test_with_a_schedule_only_the_ticks_frames_and_a_keep_alive_are_published(
     router: list[str], caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -142,3 +142,33 @@ def test_tick_frames_only_without_the_managers_schedule_warns(tmp_path: Path) ->
     report = check_file(write(tmp_path, xbee))
     (warning,) = [w for w in report.warnings if w.key == "mocap.tick_frames_only"]
     assert "an XBee [gateway] drives the ticks with tick messages" in warning.message
+
+
+def test_tick_spread_without_the_managers_schedule_warns(tmp_path: Path) -> None:
+    from hilswarm.orchestrator.checks import check_file
+
+    old = "hold_frames = 50 "
+    text = DEMO.replace(old, "tick_spread_frames = 3\n" + old, 1)
+    report = check_file(write(tmp_path, text))  # self-clocked: each agent keeps its phase
+    assert report.ok and not [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
+    ticked = text.replace('mode = "realtime"', 'mode = "realtime"\nrealtime_clock = "manager"', 1)
+    report = check_file(write(tmp_path, ticked))
+    assert report.ok
+    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
+    assert 'has no effect here: realtime_clock = "manager" drives the ticks' in warning.message
+
+
+def test_a_spread_leaving_the_last_agents_little_time_warns(tmp_path: Path) -> None:
+    """100 Hz frames, 20 Hz control: 4 frames leave the last agents 10 ms of 50 (20 %): no
+    warning; with 23 Hz control 4 frames leave 3.5 ms (8 %): a warning naming 3."""
+    from hilswarm.orchestrator.checks import check_file
+
+    old = "hold_frames = 50 "
+    text = DEMO.replace(old, "tick_spread_frames = 4\n" + old, 1)
+    report = check_file(write(tmp_path, text))
+    assert report.ok and not [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
+    report = check_file(write(tmp_path, text.replace("rate_hz = 20.0", "rate_hz = 23.0", 1)))
+    assert report.ok
+    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
+    assert "leave the last agents 3.48 ms (8% of the 43.5 ms control period)" in warning.message
+    assert "3 frames leave 20% or more" in warning.message
