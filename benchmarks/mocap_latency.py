@@ -494,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
         default=1,
         metavar="N",
         help="[mocap] tick_spread_frames: the agents' ticks spread over N frames (default 1: "
-        "all at once); e.g. --tick-spread 8 --lag-ms 0.25 --pose-wait-ms 3.5 at 240 Hz",
+        "all at once); e.g. --tick-spread 8 --lag-ms 0.25 --pose-wait-ms 4 at 240 Hz",
     )
     parser.add_argument(
         "--no-subscriber",
