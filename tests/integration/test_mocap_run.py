@@ -43,6 +43,17 @@ def variant(tmp_path: Path, **replace: str) -> Path:
     return path
 
 
+def run_to_end(
+    runs: list[RunProcess], tmp_path: Path, experiment: Path, seconds: str, exit_code: int
+) -> tuple[RunProcess, dict]:
+    """``hilswarm run`` of ``experiment`` for ``seconds``, to its end with ``exit_code``; the
+    run and its recording."""
+    run = RunProcess(tmp_path, experiment, "--duration", seconds)
+    runs.append(run)
+    assert run.wait(RUN_TIMEOUT_S) == exit_code, run.output()
+    return run, read_recording(run.out)
+
+
 def outputs(recording: dict, agent: str) -> np.ndarray:
     """``/<agent>/y`` as floats (NaN is recorded as null)."""
     rows = recording[f"/{agent}/y"]
@@ -56,10 +67,7 @@ def statuses(recording: dict, agent: str) -> list[tuple[str, str]]:
 def test_the_demo_runs_with_poses_through_the_real_client(
     runs: list[RunProcess], tmp_path: Path
 ) -> None:
-    run = RunProcess(tmp_path, DEMO, "--duration", "4")
-    runs.append(run)
-    assert run.wait(RUN_TIMEOUT_S) == 0, run.output()
-    recording = read_recording(run.out)
+    run, recording = run_to_end(runs, tmp_path, DEMO, "4", 0)
     for agent in ("leader", "f1", "f2"):
         y = outputs(recording, agent)
         assert len(y) == 80 and np.all(np.isfinite(y)), agent
@@ -100,10 +108,8 @@ def test_an_occluded_body_puts_its_agent_safe_with_lost_tracking(
         **{"dropout_frames = 3      # its length [frames] (held, well under hold_frames)":
            "dropout_frames = 3\nocclusions = { frisbee2 = [1.5, 60.0] }"},
     )  # fmt: skip
-    run = RunProcess(tmp_path, experiment, "--duration", "8")
-    runs.append(run)
-    assert run.wait(RUN_TIMEOUT_S) == 1, run.output()  # on_agent_safe = "stop": ended early
-    recording = read_recording(run.out)
+    # on_agent_safe = "stop": ended early
+    _, recording = run_to_end(runs, tmp_path, experiment, "8", 1)
     f1 = statuses(recording, "f1")
     lost = "lost tracking: body 'frisbee2' not seen for"
     assert any(s == "safe" and lost in d for s, d in f1), f1
@@ -128,10 +134,8 @@ def test_with_tick_frames_only_fewer_poses_go_out_and_tracking_loss_is_unchanged
            "dropout_frames = 3\nocclusions = { frisbee2 = [1.5, 60.0] }",
            "hold_frames = 50 ": "tick_frames_only = true\nhold_frames = 50 "},
     )  # fmt: skip
-    run = RunProcess(tmp_path, experiment, "--duration", "8")
-    runs.append(run)
-    assert run.wait(RUN_TIMEOUT_S) == 1, run.output()  # on_agent_safe = "stop": ended early
-    recording = read_recording(run.out)
+    # on_agent_safe = "stop": ended early
+    run, recording = run_to_end(runs, tmp_path, experiment, "8", 1)
     lost = "lost tracking: body 'frisbee2' not seen for"
     assert any(s == "safe" and lost in d for s, d in statuses(recording, "f1"))
     y = outputs(recording, "f1")
@@ -157,10 +161,7 @@ def test_spread_ticks_sense_their_own_frames(runs: list[RunProcess], tmp_path: P
         **{"hold_frames = 50 ": "tick_spread_frames = 3\ntick_lag_ms = 1.0\n"
                                 "pose_wait_ms = 8.0\nhold_frames = 50 "},
     )  # fmt: skip
-    run = RunProcess(tmp_path, experiment, "--duration", "4")
-    runs.append(run)
-    assert run.wait(RUN_TIMEOUT_S) == 0, run.output()
-    recording = read_recording(run.out)
+    _, recording = run_to_end(runs, tmp_path, experiment, "4", 0)
     frames: dict[str, dict[int, int]] = {}
     for agent in ("leader", "f1", "f2"):
         assert np.all(np.isfinite(outputs(recording, agent))), agent

@@ -119,43 +119,33 @@ def test_ticks_faster_than_the_frames_warn(tmp_path: Path) -> None:
     assert not [w for w in same.warnings if w.key == "experiment.rate_hz"]
 
 
-def test_tick_frames_only_without_the_managers_schedule_warns(tmp_path: Path) -> None:
+@pytest.mark.parametrize("line", ["tick_frames_only = true", "tick_spread_frames = 3"])
+def test_schedule_settings_without_the_managers_schedule_warn(tmp_path: Path, line: str) -> None:
+    """``tick_frames_only`` and ``tick_spread_frames`` need the manager's schedule in advance,
+    which tick messages (``realtime_clock = "manager"``, an XBee gateway) replace."""
     from hilswarm.orchestrator.checks import check_file
 
+    key = "mocap." + line.split(maxsplit=1)[0]
     old = "hold_frames = 50 "
     assert old in DEMO
-    text = DEMO.replace(old, "tick_frames_only = true\n" + old, 1)
+    text = DEMO.replace(old, f"{line}\n" + old, 1)
     report = check_file(write(tmp_path, text))  # self-clocked: the schedule is known
-    assert report.ok and not [w for w in report.warnings if w.key == "mocap.tick_frames_only"]
+    assert report.ok and not [w for w in report.warnings if w.key == key]
     ticked = text.replace('mode = "realtime"', 'mode = "realtime"\nrealtime_clock = "manager"', 1)
     report = check_file(write(tmp_path, ticked))
     assert report.ok
-    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_frames_only"]
+    (warning,) = [w for w in report.warnings if w.key == key]
     assert 'has no effect here: realtime_clock = "manager" drives the ticks' in warning.message
     xbee = (REPO / "graphs" / "xbee_swarm_broadcast.toml").read_text()
     for old, new in (
         ('mode = "lockstep"', 'mode = "realtime"'),
         ('mode = "broadcast"', 'mode = "broadcast"\nanswer = "at_once"'),
-        ("[graph]", '[mocap]\nsystem = "sim"\ntick_frames_only = true\n\n[graph]'),
+        ("[graph]", f'[mocap]\nsystem = "sim"\n{line}\n\n[graph]'),
     ):
         xbee = xbee.replace(old, new, 1)
     report = check_file(write(tmp_path, xbee))
-    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_frames_only"]
+    (warning,) = [w for w in report.warnings if w.key == key]
     assert "an XBee [gateway] drives the ticks with tick messages" in warning.message
-
-
-def test_tick_spread_without_the_managers_schedule_warns(tmp_path: Path) -> None:
-    from hilswarm.orchestrator.checks import check_file
-
-    old = "hold_frames = 50 "
-    text = DEMO.replace(old, "tick_spread_frames = 3\n" + old, 1)
-    report = check_file(write(tmp_path, text))  # self-clocked: each agent keeps its phase
-    assert report.ok and not [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
-    ticked = text.replace('mode = "realtime"', 'mode = "realtime"\nrealtime_clock = "manager"', 1)
-    report = check_file(write(tmp_path, ticked))
-    assert report.ok
-    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
-    assert 'has no effect here: realtime_clock = "manager" drives the ticks' in warning.message
 
 
 def test_a_spread_leaving_the_last_agents_little_time_warns(tmp_path: Path) -> None:
