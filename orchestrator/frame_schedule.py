@@ -36,13 +36,21 @@ class FrameSchedule:
         mocap: the experiment's ``[mocap]`` section (``None``: none); its ``tick_lock``,
             ``rate_hz`` and ``tick_lag_s`` are used.
         realtime: the run is realtime (lockstep ticks never lock).
+        self_clocked: the agents keep the schedule themselves, so the ticks' spread over the
+            frames (``tick_spread_frames``) applies; the record says so.
     """
 
-    def __init__(self, dt: float, mocap: Any | None, *, realtime: bool) -> None:
+    def __init__(
+        self, dt: float, mocap: Any | None, *, realtime: bool, self_clocked: bool = False
+    ) -> None:
         self._guard = threading.Lock()  # the frame-clock callback against the ticking thread
         self.lock: FrameLock | None = None
+        #: Frames the agents' ticks spread over (1: none, or not in effect in this run).
+        self.spread = 1
         if realtime and mocap is not None and mocap.tick_lock:
             self.lock = FrameLock(1.0 / mocap.rate_hz)
+            if self_clocked:
+                self.spread = max(1, int(getattr(mocap, "tick_spread_frames", 1)))
         lag_s = mocap.tick_lag_s if self.lock is not None else 0.0
         self.ticks = TickClock(dt, self.lock, lag_s)
         #: Frame-clock messages dropped as malformed (only the mocap principal may put them).
@@ -129,6 +137,8 @@ class FrameSchedule:
                 f"({offset * 1e3:.3g} ms after their frame time); frames after the estimated "
                 f"grid: mean {mean * 1e3:.3g} / max {top * 1e3:.3g} ms ({frames} frames)"
             )
+            if self.spread > 1:
+                detail += f"; the agents' ticks spread over {self.spread} frames"
         elif not ticks.enabled:
             detail = "free: ticks faster than the mocap frames"
         else:

@@ -248,7 +248,10 @@ class InstanceManager:
         self._clock_origin = clock()
         # Realtime due times, in step with the mocap frames with ``[mocap] tick_lock``.
         self._frames = FrameSchedule(
-            self.dt, getattr(experiment, "mocap", None), realtime=self._realtime
+            self.dt,
+            getattr(experiment, "mocap", None),
+            realtime=self._realtime,
+            self_clocked=self.self_clocked,
         )
 
     # -- bus ---------------------------------------------------------------------------------

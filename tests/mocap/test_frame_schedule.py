@@ -83,3 +83,20 @@ def test_tick_0_waits_for_the_frames_that_set_the_lock() -> None:
     n = ACQUIRE_FRAMES - 1
     schedule.on_frame(frame_clock.encode(n, 1.0 + n * P), 1.0005 + n * P)
     assert schedule.wait_acquired(0.0)
+
+
+@pytest.mark.parametrize(("self_clocked", "said"), [(True, True), (False, False)])
+def test_the_record_says_when_the_ticks_spread(self_clocked: bool, said: bool) -> None:
+    """``tick_spread_frames`` in a self-clocked run: the ``frame_lock`` record says it (with
+    tick messages it has no effect, and the record says nothing of it)."""
+    mocap = MocapSettings(system="sim", rate_hz=100.0, tick_spread_frames=3)
+    schedule = FrameSchedule(DT, mocap, realtime=True, self_clocked=self_clocked)
+    schedule.start(1.0)
+    for n in range(ACQUIRE_FRAMES):
+        schedule.on_frame(frame_clock.encode(n, 1.0 + n * P), 1.0 + n * P + 0.0005)
+    now = 1.0 + ACQUIRE_FRAMES * P
+    schedule.due(ACQUIRE_FRAMES, now)
+    schedule.released()
+    text = schedule.report(ACQUIRE_FRAMES, now)
+    assert text is not None and text.startswith("locked: ")
+    assert ("the agents' ticks spread over 3 frames" in text) is said
