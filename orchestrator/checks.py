@@ -222,8 +222,16 @@ def _check_mocap_timing(parts: ExperimentParts, report: CheckReport) -> None:
     if mocap is None or settings is None:
         return
     realtime = settings.mode == "realtime"  # (lockstep with [mocap] is refused elsewhere)
-    if realtime and not self_clocked(settings.mode, settings.realtime_clock, parts.gateway):
-        driver = "an XBee [gateway]" if parts.gateway is not None else 'realtime_clock = "manager"'
+    remote = [name for name in parts.agents if name in parts.remote]
+    if realtime and not self_clocked(
+        settings.mode, settings.realtime_clock, parts.gateway, remote=bool(remote)
+    ):
+        if parts.gateway is not None:
+            driver = "an XBee [gateway]"
+        elif settings.realtime_clock != "shared":
+            driver = 'realtime_clock = "manager"'
+        else:
+            driver = f"the manager, for the agent on another machine (--remote {remote[0]}),"
         if mocap.tick_frames_only:
             report.warnings.append(
                 Problem(

@@ -193,6 +193,7 @@ class Experiment:
     realtime_clock: Literal["shared", "manager"] = "shared"
     mocap: Any = None
     gateway: Any = None
+    remote: Container[str] = ()
 
     @property
     def dt(self) -> float:
@@ -259,6 +260,8 @@ class ExperimentParts:
             :class:`~hilswarm.agents.mocap.config.MocapSettings`, or ``None``.
         gateway: the valid ``[gateway]`` table as a
             :class:`~hilswarm.agents.xbee.config.GatewayConfig`, or ``None``.
+        remote: the agents that run on other machines (``hilswarm run --remote``; every one
+            but its own for ``hilswarm agent``).
         experiment: the experiment, when there is no problem at all.
     """
 
@@ -412,6 +415,7 @@ class _Loader:
     ) -> None:
         self.parts = parts
         self.remote = remote
+        parts.remote = remote
         self.path = parts.path
         self.data = data
         self.max_agents = max_agents

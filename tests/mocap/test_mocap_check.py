@@ -146,6 +146,11 @@ def test_schedule_settings_without_the_managers_schedule_warn(tmp_path: Path, li
     report = check_file(write(tmp_path, xbee))
     (warning,) = [w for w in report.warnings if w.key == key]
     assert "an XBee [gateway] drives the ticks with tick messages" in warning.message
+    report = check_file(write(tmp_path, text), remote=["f1"])  # f1 joins from elsewhere
+    (warning,) = [w for w in report.warnings if w.key == key]
+    assert "the manager, for the agent on another machine (--remote f1), drives the ticks" in (
+        warning.message
+    )
 
 
 def test_a_spread_leaving_the_last_agents_little_time_warns(tmp_path: Path) -> None:
