@@ -78,8 +78,8 @@ EXCLUSIVE_LINK_KINDS = ("serial",)
 MANY_TICKS = 5_000_000
 #: ``[mocap] tick_spread_frames``: warn when the last phase's agents have less than this share of
 #: the control period to answer (docs/mocap.md: 16 agents at 240 Hz frames and 23 Hz control,
-#: a spread of 8 frames, 23 % left, halved the pose latency's p99; 10 frames, 4 % left,
-#: doubled it).
+#: a spread of 8 frames, 23 % left, more than halved the pose latency's p99 in most runs; 10
+#: frames, 4 % left, was no better than none).
 SPREAD_ANSWER_FRACTION = 0.2
 
 
