@@ -280,7 +280,7 @@ def _check_spread_margin(parts: ExperimentParts, report: CheckReport) -> None:
     if spread <= 1 or not mocap.tick_lock:
         return
     period = 1.0 / settings.rate_hz
-    answer = period - spread / mocap.rate_hz
+    answer = mocap.spread_left_s(period)
     if not 0.0 < answer < SPREAD_ANSWER_FRACTION * period:
         return  # fits comfortably, or refused already (it does not fit in one period)
     fitting = max(1, math.floor((1.0 - SPREAD_ANSWER_FRACTION) * mocap.rate_hz / settings.rate_hz))

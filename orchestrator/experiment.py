@@ -193,7 +193,6 @@ class Experiment:
     realtime_clock: Literal["shared", "manager"] = "shared"
     mocap: Any = None
     gateway: Any = None
-    remote: Container[str] = ()
 
     @property
     def dt(self) -> float:
@@ -272,6 +271,7 @@ class ExperimentParts:
     graph: tuple[list[str], np.ndarray, Path | None] | None = None
     mocap: Any = None
     gateway: Any = None
+    remote: Container[str] = ()
     experiment: Experiment | None = None
     _positions: dict[str, int] | None = field(default=None, repr=False)
 
@@ -513,13 +513,13 @@ class _Loader:
                 "does not go with tick_frames_only = true: the mocap process publishes the "
                 "frames of the swarm's due times, not of each agent's phase",
             )
-        span_ms, period_ms = 1000.0 * spread / mocap.rate_hz, 1000.0 / settings.rate_hz
-        if span_ms >= period_ms:
+        if mocap.spread_left_s(1.0 / settings.rate_hz) <= 0.0:
             self.problem(
                 key,
-                f"{spread} frames ({span_ms:.3g} ms at [mocap] rate_hz = {mocap.rate_hz:g}) do "
-                f"not fit in one control period ({period_ms:.3g} ms at rate_hz = "
-                f"{settings.rate_hz:g}); at most {math.ceil(mocap.rate_hz / settings.rate_hz) - 1}",
+                f"{spread} frames ({1000.0 * spread / mocap.rate_hz:.3g} ms at [mocap] rate_hz = "
+                f"{mocap.rate_hz:g}) do not fit in one control period "
+                f"({1000.0 / settings.rate_hz:.3g} ms at rate_hz = {settings.rate_hz:g}); at most "
+                f"{math.ceil(mocap.rate_hz / settings.rate_hz) - 1}",
             )
 
     def _gateway(self) -> Any:

@@ -50,7 +50,7 @@ class FrameSchedule:
         if realtime and mocap is not None and mocap.tick_lock:
             self.lock = FrameLock(1.0 / mocap.rate_hz)
             if self_clocked:
-                self.spread = max(1, int(getattr(mocap, "tick_spread_frames", 1)))
+                self.spread = mocap.tick_spread_frames
         lag_s = mocap.tick_lag_s if self.lock is not None else 0.0
         self.ticks = TickClock(dt, self.lock, lag_s)
         #: Frame-clock messages dropped as malformed (only the mocap principal may put them).

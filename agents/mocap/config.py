@@ -116,6 +116,13 @@ class MocapSettings:
             return 0.0
         return (index % self.tick_spread_frames) / self.rate_hz
 
+    def spread_left_s(self, dt: float) -> float:
+        """With ``tick_spread_frames``: how long the agents of the last phase have to answer
+        before the swarm's next tick, in a control period of ``dt`` [s]: ``dt`` minus their
+        phase minus one frame period (a locked tick sits up to a frame after its grid point);
+        not above 0: the spread does not fit in one period."""
+        return dt - self.tick_spread_frames / self.rate_hz
+
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able data (for command lines); inverse of :meth:`from_dict`."""
         data = asdict(self)
