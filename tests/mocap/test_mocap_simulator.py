@@ -21,8 +21,9 @@ from hilswarm.agents.mocap.clients import (
     MocapConnectionError,
     MocapServerLost,
     QualisysClient,
+    qtm_bodies,
 )
-from hilswarm.agents.mocap.frames import convention, pose_from
+from hilswarm.agents.mocap.frames import convention, pose_from, rotation_zyx
 from hilswarm.agents.mocap.qtm_sim import (
     HEADER,
     TYPE_COMMAND,
@@ -30,6 +31,8 @@ from hilswarm.agents.mocap.qtm_sim import (
     QtmSimulator,
     SimSettings,
     SimulatorError,
+    data_packet,
+    pack_body,
 )
 
 POSE_A = np.array([1.25, -0.5, 0.75, 0.1, -0.2, 2.5])
@@ -166,6 +169,26 @@ def test_the_simulator_is_stricter_than_qtm() -> None:
         # A malformed packet (wrong type) closes the connection after an error.
         closing = _raw_exchange(sim.port, [struct.pack("<II", 12, 3) + b"1234", b""])
         assert closing[0][0] == TYPE_ERROR
+
+
+def test_a_six_d_packet_maps_to_each_bodys_position_and_attitude() -> None:
+    """qtm-rt parses the simulator's packet bytes; ``qtm_bodies`` turns the entries into
+    positions [mm] and R (body -> system) from QTM's column-major matrices, in the order of the
+    6D parameters' bodies; an untracked body (NaN) is ``None``; extra entries are ignored."""
+    poses = [POSE_A, None, np.array([-3.0, 0.25, 0.0, 0.0, 0.3, -1.0])]
+    raw = data_packet(1_000_000, 7, [pack_body(p) for p in poses])
+    packet = qtm_rt.QRTPacket(raw[HEADER.size :])
+    _header, entries = packet.get_6d()
+    bodies = qtm_bodies(("a", "b", "c"), entries)
+    assert list(bodies) == ["a", "b", "c"]
+    assert bodies["b"] is None
+    for name, pose in (("a", poses[0]), ("c", poses[2])):
+        position, rotation = bodies[name]
+        np.testing.assert_allclose(position, pose[:3] * 1e3, rtol=1e-6)
+        np.testing.assert_allclose(rotation, rotation_zyx(*pose[3:]), atol=1e-6)
+    assert list(qtm_bodies(("a",), entries)) == ["a"]  # more entries than names
+    assert list(qtm_bodies(("a", "b", "c", "d"), entries)) == ["a", "b", "c"]
+    assert qtm_bodies(("a",), []) == {}
 
 
 def test_qtm_rt_directly_streams_six_d() -> None:
