@@ -156,6 +156,26 @@ def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
     )
 
 
+def rotations_zyx(angles: np.ndarray) -> np.ndarray:
+    """:func:`rotation_zyx` of every row of ``angles`` ``(n, 3)`` ``[roll, pitch, yaw]``
+    [rad]: the matrices ``(n, 3, 3)`` (body -> world), as array operations."""
+    angles = np.asarray(angles, dtype=np.float64).reshape(-1, 3)
+    cos, sin = np.cos(angles), np.sin(angles)
+    cr, cp, cy = cos[:, 0], cos[:, 1], cos[:, 2]
+    sr, sp, sy = sin[:, 0], sin[:, 1], sin[:, 2]
+    out = np.empty((angles.shape[0], 3, 3))
+    out[:, 0, 0] = cy * cp
+    out[:, 0, 1] = cy * sp * sr - sy * cr
+    out[:, 0, 2] = cy * sp * cr + sy * sr
+    out[:, 1, 0] = sy * cp
+    out[:, 1, 1] = sy * sp * sr + cy * cr
+    out[:, 1, 2] = sy * sp * cr - cy * sr
+    out[:, 2, 0] = -sp
+    out[:, 2, 1] = cp * sr
+    out[:, 2, 2] = cp * cr
+    return out
+
+
 def quaternion_to_rotation(w: float, x: float, y: float, z: float) -> np.ndarray:
     """Rotation matrix of the unit quaternion ``w + xi + yj + zk`` (normalised here)."""
     n = math.sqrt(w * w + x * x + y * y + z * z)

@@ -46,7 +46,7 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 from hilswarm.agents.errors import HilswarmError
-from hilswarm.agents.mocap.frames import rotation_zyx
+from hilswarm.agents.mocap.frames import rotation_zyx, rotations_zyx
 
 logger = logging.getLogger(__name__)
 
@@ -149,13 +149,31 @@ def text_packet(kind: int, text: str) -> bytes:
 
 def data_packet(timestamp_us: int, frame: int, bodies: Sequence[bytes]) -> bytes:
     """A data packet with one 6D component of the packed ``bodies`` (see :data:`_BODY`)."""
-    body_bytes = b"".join(bodies)
+    return _data_packet(timestamp_us, frame, b"".join(bodies), len(bodies))
+
+
+def _data_packet(timestamp_us: int, frame: int, body_bytes: bytes, count: int) -> bytes:
     component = (
         _COMPONENT_HEAD.pack(_COMPONENT_HEAD.size + _6D_HEAD.size + len(body_bytes), COMPONENT_6D)
-        + _6D_HEAD.pack(len(bodies), 0, 0)
+        + _6D_HEAD.pack(count, 0, 0)
         + body_bytes
     )
     return packet(TYPE_DATA, _DATA_HEAD.pack(timestamp_us, frame, 1) + component)
+
+
+def pack_bodies(poses: np.ndarray) -> bytes:
+    """The 6D body entries of world poses ``(n, 6)`` ``[x, y, z (m), roll, pitch, yaw
+    (rad)]``, in one go (a row with a non-finite value: an untracked body, NaN everywhere);
+    the same bytes as :func:`pack_body` of each row."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 6)
+    entries = np.full((poses.shape[0], 12), np.nan, dtype="<f4")
+    seen = np.isfinite(poses).all(axis=1)
+    if seen.any():
+        tracked = poses[seen]
+        rotations = rotations_zyx(tracked[:, 3:])
+        entries[seen, :3] = tracked[:, :3] * 1e3
+        entries[seen, 3:] = rotations.transpose(0, 2, 1).reshape(-1, 9)  # column-major
+    return entries.tobytes()
 
 
 def pack_body(pose: np.ndarray | None) -> bytes:
@@ -413,19 +431,20 @@ class QtmSimulator:
     def _frame(self, frame: int, elapsed_s: float) -> bytes:
         settings, rng = self.settings, self._rng
         timestamp_us = self._clock_ns() // 1000  # type: ignore[operator]
-        bodies = []
-        for name in settings.bodies:
+        # Every body at once (at 16 bodies one at a time took ~0.26 ms between the time stamp
+        # and the send): the occlusions body by body, then the noise of the tracked ones.
+        measured = np.full((len(settings.bodies), 6), np.nan)
+        for i, name in enumerate(settings.bodies):
             truth = self._truth.get(name)
-            if self._occluded(name, frame, elapsed_s) or truth is None:
-                bodies.append(_NAN_BODY)
-                continue
-            measured = truth.copy()
-            if settings.noise_std_m:
-                measured[:3] += rng.normal(0.0, settings.noise_std_m, 3)
-            if settings.noise_std_rad:
-                measured[3:] += rng.normal(0.0, settings.noise_std_rad, 3)
-            bodies.append(pack_body(measured))
-        return data_packet(timestamp_us, frame, bodies)
+            if truth is not None and not self._occluded(name, frame, elapsed_s):
+                measured[i] = truth
+        seen = np.isfinite(measured).all(axis=1)
+        tracked = int(seen.sum())
+        if tracked and settings.noise_std_m:
+            measured[seen, :3] += rng.normal(0.0, settings.noise_std_m, (tracked, 3))
+        if tracked and settings.noise_std_rad:
+            measured[seen, 3:] += rng.normal(0.0, settings.noise_std_rad, (tracked, 3))
+        return _data_packet(timestamp_us, frame, pack_bodies(measured), len(settings.bodies))
 
     def _occluded(self, name: str, frame: int, elapsed_s: float) -> bool:
         window = self.settings.occlusions.get(name)

@@ -14,6 +14,7 @@ from hilswarm.agents.mocap.frames import (
     pose_from,
     quaternion_to_rotation,
     rotation_zyx,
+    rotations_zyx,
     world_to_ned,
     yaw_quaternion,
 )
@@ -65,6 +66,15 @@ def test_unknown_system_and_axis_are_refused() -> None:
         convention("phasespace")
     with pytest.raises(FrameError, match="up_axis"):
         convention("vicon", up_axis="x")
+
+
+def test_rotations_of_many_bodies_at_once_are_each_bodys_rotation() -> None:
+    angles = np.random.default_rng(4).uniform(-math.pi, math.pi, size=(50, 3))
+    many = rotations_zyx(angles)
+    assert many.shape == (50, 3, 3)
+    for row, matrix in zip(angles, many, strict=True):
+        np.testing.assert_allclose(matrix, rotation_zyx(*row), atol=1e-15)
+    assert rotations_zyx(np.empty((0, 3))).shape == (0, 3, 3)
 
 
 def test_euler_and_quaternion_round_trip() -> None:

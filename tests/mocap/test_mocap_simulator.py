@@ -32,6 +32,7 @@ from hilswarm.agents.mocap.qtm_sim import (
     SimSettings,
     SimulatorError,
     data_packet,
+    pack_bodies,
     pack_body,
 )
 
@@ -189,6 +190,18 @@ def test_a_six_d_packet_maps_to_each_bodys_position_and_attitude() -> None:
     assert list(qtm_bodies(("a",), entries)) == ["a"]  # more entries than names
     assert list(qtm_bodies(("a", "b", "c", "d"), entries)) == ["a", "b", "c"]
     assert qtm_bodies(("a",), []) == {}
+
+
+def test_bodies_packed_at_once_are_the_bytes_of_each_packed_alone() -> None:
+    """The simulator packs a frame's bodies in one go; each entry is exactly pack_body's
+    (float32 position [mm] and column-major matrix; NaN everywhere for an untracked body)."""
+    rng = np.random.default_rng(11)
+    poses = rng.normal(size=(64, 6)) * [2.0, 2.0, 1.0, 3.0, 1.5, 3.0]
+    poses[5] = np.nan
+    poses[9, 2] = np.inf
+    packed = pack_bodies(poses)
+    assert packed == b"".join(pack_body(pose) for pose in poses)
+    assert pack_bodies(np.empty((0, 6))) == b""
 
 
 def test_qtm_rt_directly_streams_six_d() -> None:
