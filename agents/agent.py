@@ -1021,6 +1021,13 @@ class Agent:
                 hw.board.close()
             except HilswarmError as exc:
                 logger.error("%s: closing the board failed: %s", self.config.name, exc)
+        if self._session is not None and not bus.flush_barrier(
+            self._session, self.keys.flush(self.config.name)
+        ):
+            logger.warning(
+                "%s: the bus did not confirm the last status before the session closed",
+                self.config.name,
+            )
         self._entities.clear()
         self._status_pub = None
         if self._session is not None:

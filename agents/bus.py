@@ -22,6 +22,8 @@ is ever consumed):
   other listeners (tools, dashboards); an agent publishes there only while someone subscribes.
 * ``agent/<name>/status`` — lifecycle transitions and acknowledgements (JSON, rare).
 * ``agent/<name>/set`` — a queryable: parameter changes, answered with an acknowledgement.
+* ``agent/<name>/flush`` — answered by no one: the agent's last query before it closes its
+  session (:func:`flush_barrier`), so its last messages have reached the router first.
 * ``agent/<name>/telemetry`` — the vehicle's telemetry channels, in batches
   (:func:`encode_telemetry_batch`): the rows appended since the previous batch, every
   :data:`TELEMETRY_PERIOD_S` of wall time and once more when the agent goes safe or stops.
@@ -70,6 +72,7 @@ import logging
 import os
 import re
 import struct
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -206,6 +209,10 @@ class BusKeys:
     def set(self, name: str) -> str:
         """Key of agent ``name``'s parameter queryable."""
         return self.agent(name, "set")
+
+    def flush(self, name: str) -> str:
+        """Key of agent ``name``'s flush barrier (:func:`flush_barrier`; no queryable)."""
+        return self.agent(name, "flush")
 
     def telemetry_batches(self, name: str) -> str:
         """Key of agent ``name``'s telemetry batches (:func:`encode_telemetry_batch`)."""
@@ -965,6 +972,39 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
     except zenoh.ZError as exc:
         logger.debug("zenoh.open failed: %s", exc)
         raise BusConnectionError(_explain_open_error(config, str(exc))) from None
+
+
+#: Bound on waiting for the answer to :func:`flush_barrier`'s query [s].
+FLUSH_TIMEOUT_S = 1.0
+
+
+def flush_barrier(session: zenoh.Session, key: str, *, timeout_s: float = FLUSH_TIMEOUT_S) -> bool:
+    """Wait until this session's messages put so far at :data:`DATA_QOS`'s priority (or a
+    higher one) have reached the router: a query on ``key``, which no one answers, at that
+    priority, behind them in the same queue. The router routes what came before it, then
+    answers the query (no queryable: at once) with its end. ``True`` when the end came within
+    ``timeout_s`` [s].
+
+    Why: a session closed right after a put may lose it. Closing sends the undeclarations and
+    the link's close at control priority, ahead of data still queued, and what was still
+    queued can be lost (measured: an agent's last statuses, put ~0.7 ms before it closed its
+    session, never reached the manager in 2 of 72 runs of one test on a loaded 2-core
+    machine; none lost in 51 runs with this barrier).
+    """
+    start = time.monotonic()
+    try:
+        replies = session.get(
+            key,
+            timeout=timeout_s,
+            congestion_control=DATA_QOS["congestion_control"],
+            priority=DATA_QOS["priority"],
+        )
+        for _ in replies:  # ends with the query's end (none answers) or at its timeout
+            pass
+    except zenoh.ZError as exc:
+        logger.debug("flush barrier on %s: %s", key, exc)
+        return False
+    return time.monotonic() - start < timeout_s
 
 
 def _explain_open_error(config: zenoh.Config, raw: str) -> str:

@@ -22,7 +22,8 @@ What follows from the experiment (:func:`run_grants`):
   ``tick``, ``control`` and ``agent/<j>/y`` for exactly its graph neighbours j (the adjacency
   matrix enforced by the router), and its own ``agent/<i>/link/{rx,robot/in}`` (a board behind
   the XBee gateway), watch ``alive/_manager`` and its own ``alive/<i>`` (a second process
-  for the same agent is refused at start);
+  for the same agent is refused at start), query its own ``agent/<i>/flush`` (answered by
+  no one: :func:`hilswarm.agents.bus.flush_barrier`);
 * operator (``hilswarm stop`` / ``set``): put ``manager/request`` (and ``gateway/sim``, fault
   commands to a simulated XBee coordinator), subscribe ``manager/status``, query
   ``agent/*/set``;
@@ -121,6 +122,8 @@ def agent_grants(
         # its own token too: at start it asks whether another process runs it already
         watch_tokens=(f"alive/{MANAGER_TOKEN}", f"alive/{name}"),
         queryables=(f"agent/{name}/set",),
+        # the query no one answers before it closes its session (bus.flush_barrier)
+        query=(f"agent/{name}/flush",),
     )
 
 
