@@ -161,7 +161,8 @@ def test_linear_plant_rk4_converges_to_zoh_discretisation(seed: int, m: int) -> 
     plant = LinearPlant(a.tolist(), b.tolist())
     x0, u = rng.normal(size=3), rng.normal(size=m)
     dt = 0.05
-    big = expm(np.block([[a, b], [np.zeros((m, 3 + m))]]) * dt)
+    augmented = np.block([[a, b], [np.zeros((m, 3 + m))]])
+    big = expm(augmented * dt)
     exact = big[:3, :3] @ x0 + big[:3, 3:] @ u
     substeps = 2
     approx = plant.advance(0.0, x0, u, dt, method="rk4", substeps=substeps)
@@ -169,7 +170,7 @@ def test_linear_plant_rk4_converges_to_zoh_discretisation(seed: int, m: int) -> 
     # substep, M = [[A, B], [0, 0]] acting on z = [x; u]. With s = |M|_2 h, |T^n - E^n| <=
     # n e^((n-1) s) |T - E| and |T - E| <= e^s - (1 + s + s^2/2 + s^3/6 + s^4/24): the
     # method's own error bound, not a tuned tolerance (a wrong coefficient errs ~s^4/24).
-    s = np.linalg.norm(np.block([[a, b], [np.zeros((m, 3 + m))]]), 2) * dt / substeps
+    s = np.linalg.norm(augmented, 2) * dt / substeps
     remainder = math.exp(s) - sum(s**k / math.factorial(k) for k in range(5))
     bound = substeps * math.exp((substeps - 1) * s) * remainder
     bound *= float(np.linalg.norm(np.concatenate([x0, u])))
