@@ -35,12 +35,16 @@ HERE = Path(__file__).resolve().parent
 REPO = HERE.parent.parent
 
 
-def wait_for(condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-    """Poll ``condition`` (every 20 ms) for at most ``timeout_s``; fail the test on timeout."""
+def wait_for(
+    condition: Callable[[], bool], timeout_s: float, what: str | Callable[[], str]
+) -> None:
+    """Poll ``condition`` (every 20 ms) for at most ``timeout_s``; fail the test on timeout,
+    saying ``what`` was awaited (a callable: worded at the timeout, with what was seen)."""
     deadline = time.monotonic() + timeout_s
     while not condition():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+            said = what() if callable(what) else what
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {said}")
         time.sleep(0.02)
 
 
@@ -255,6 +259,11 @@ class Spy:
     run both are plain sessions (that may put anywhere).
 
     Keys are counted without the run id (``hilswarm/<exp>/agent/a/y``), as tests name them.
+
+    The spy may subscribe after the run's first ticks: its registry entry appears when the
+    bus opens, and agents forked from the warm fork server are ready ~50 ms later (a lockstep
+    run then ticks at once). So a test that needs every output from tick 0 reads the
+    recording; on the bus it counts from the spy's first output (:meth:`answers`).
     """
 
     def __init__(self, run: RunProcess) -> None:
@@ -272,6 +281,7 @@ class Spy:
         self.counts: dict[str, int] = defaultdict(int)
         self.warmups: dict[str, int] = defaultdict(int)  # pre-roll outputs (k < 0), per key
         self.last: dict[str, bytes] = {}
+        self.first_k: dict[str, int] = {}  # tick of the first output seen, per y key
         self._lock = threading.Lock()
         self.subscriber = self.session.declare_subscriber(
             f"{self.keys.prefix}/**", zenoh.handlers.Callback(self._on_sample, indirect=False)
@@ -280,19 +290,32 @@ class Spy:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr).replace(self.keys.prefix, self._legacy.prefix, 1)
         payload = sample.payload.to_bytes()
-        warmup = key.endswith("/y") and is_warmup(
-            int.from_bytes(payload[:8], "little", signed=True)
-        )
+        output = key.endswith("/y")
+        k = int.from_bytes(payload[:8], "little", signed=True) if output else 0
         with self._lock:
-            if warmup:  # the pre-roll's, ignored like every receiver does
+            if output and is_warmup(k):  # the pre-roll's, ignored like every receiver does
                 self.warmups[key] += 1
                 return
+            if output:
+                self.first_k.setdefault(key, k)
             self.counts[key] += 1
             self.last[key] = payload
 
     def count(self, key: str) -> int:
         with self._lock:
             return self.counts.get(key, 0)
+
+    def answers(self, agent: str) -> tuple[int, int, int]:
+        """``(first k, last k, count)`` of ``agent``'s outputs seen (warm-ups aside);
+        ``(-1, -1, 0)`` before any. Every output since the spy's first: ``count == last -
+        first + 1`` (outputs come in tick order)."""
+        key = self._legacy.y(agent)
+        with self._lock:
+            payload = self.last.get(key)
+            if payload is None:
+                return -1, -1, 0
+            last = int.from_bytes(payload[:8], "little", signed=True)
+            return self.first_k[key], last, self.counts[key]
 
     def last_tick(self) -> int:
         """Index of the last tick message seen (-1 before any); in a self-clocked realtime
