@@ -24,9 +24,10 @@ subscription is known), and then sends ticks:
   per period the manager sends a *schedule* (:class:`~hilswarm.agents.bus.ScheduleMessage`: T0 on
   CLOCK_MONOTONIC, dt, first and last tick) at the start, on every change (a pause ends it
   after the next tick, a resume re-anchors it, a lost agent is announced, the frame lock moves
-  the due time of the next tick) and every :data:`SCHEDULE_REPEAT_S`; each agent wakes itself
-  at ``T0 + k * dt``. The manager still closes tick k when tick k+1 is due and accounts it
-  exactly as above (late: y_k not in).
+  the due time of the next tick: sent once that tick's senses are over,
+  :meth:`~hilswarm.orchestrator.frame_schedule.FrameSchedule.quiet_send_time`) and every
+  :data:`SCHEDULE_REPEAT_S`; each agent wakes itself at ``T0 + k * dt``. The manager still
+  closes tick k when tick k+1 is due and accounts it exactly as above (late: y_k not in).
 
 Every tick is accounted on ``/orchestrator/ticks``: scheduled and send times, completion, late
 and missing agents, and each agent's answer latency and sense/compute/actuate times.
@@ -181,6 +182,7 @@ class InstanceManager:
         # Self-clocked: the schedule in force (first, last tick; T0 [s, manager clock]).
         self._schedule = (0, experiment.n_ticks - 1, 0.0)
         self._schedule_sent = -math.inf  # when it was last sent [s]
+        self._schedule_at: float | None = None  # when the schedule in force goes out, if held
         self._halt_after: int | None = None  # a pause ends the schedule after this tick
         self._listen = list(listen)
         self._connect = list(connect)
@@ -619,6 +621,8 @@ class InstanceManager:
                 wait_until = now + 0.1
             elif realtime:
                 wait_until = due
+                if self._schedule_at is not None:
+                    wait_until = min(wait_until, self._schedule_at)
             else:
                 wait_until = min(now + 0.1, tick.last_progress + self.answer_timeout_s)
             if now >= next_display or self._paused != shown_paused:
@@ -637,6 +641,8 @@ class InstanceManager:
                     break
             if realtime:
                 if clocked:
+                    if self._schedule_at is not None and clock() >= self._schedule_at:
+                        self._send_schedule(*self._schedule)
                     if self._clocked_stepping() and clock() >= due:
                         self._clocked_step()
                 elif not self._paused and clock() >= due:
@@ -689,7 +695,8 @@ class InstanceManager:
         Closes the ticks before ``j`` (late agents counted) and opens ``j`` and ``j + 1``
         (an agent's answer may come before this thread gets here: its tick is open already).
         When the frame lock moves the due time of ``j + 1`` off the schedule in force, a new
-        schedule goes out (it reaches the agents about a period before that tick).
+        schedule is in force at once and goes out once tick ``j``'s senses are over (it
+        reaches the agents most of a period before that tick).
         """
         tick, n_ticks, dt = self._tick, self.experiment.n_ticks, self.dt
         j = self._step_k
@@ -703,7 +710,8 @@ class InstanceManager:
                 moved = self._due(j + 1) - (j + 1) * dt  # the anchor the lock asks for
                 if abs(moved - anchor) > SCHEDULE_MOVE_S:
                     anchor = moved
-                    self._send_schedule(j + 1, self._schedule[1], anchor)
+                    at = self._frames.quiet_send_time(due_j, anchor + (j + 1) * dt)
+                    self._send_schedule(j + 1, self._schedule[1], anchor, at=at)
         closed: list[tuple[TickAccount, list[int]]] = []
         with self._lock:
             while tick.base < j and tick.base <= tick.released:
@@ -887,12 +895,20 @@ class InstanceManager:
             if item[0] == _ALIVE:
                 self.alive.add(item[1])
 
-    def _send_schedule(self, first: int, last: int, t0: float, *, record: bool = False) -> None:
+    def _send_schedule(
+        self, first: int, last: int, t0: float, *, record: bool = False, at: float | None = None
+    ) -> None:
         """Self-clocked: send (and keep) the schedule: ticks ``first..last`` due at
         ``t0 + k * dt`` [s, CLOCK_MONOTONIC], with the lost agents. ``record``: also as a
         ``schedule`` event on ``/orchestrator/status`` (the start, a pause, a resume, a loss;
-        not the repeats and the frame lock's moves)."""
+        not the repeats and the frame lock's moves). ``at``: in force now, but sent only then
+        [s, manager clock] (the ticking thread sends it; any schedule sent before that
+        carries it)."""
         self._schedule = (first, last, t0)
+        if at is not None and at > self._clock():
+            self._schedule_at = at
+            return
+        self._schedule_at = None
         missing = tuple(sorted(self.lost))
         message = bus.ScheduleMessage(first, last, t0, self.dt, missing)
         self._tick_pub.put(bus.encode_schedule(message))

@@ -282,6 +282,8 @@ class Spy:
         self.warmups: dict[str, int] = defaultdict(int)  # pre-roll outputs (k < 0), per key
         self.last: dict[str, bytes] = {}
         self.first_k: dict[str, int] = {}  # tick of the first output seen, per y key
+        #: Every message on the tick key: (arrival [s, CLOCK_MONOTONIC], payload).
+        self.tick_messages: list[tuple[float, bytes]] = []
         self._lock = threading.Lock()
         self.subscriber = self.session.declare_subscriber(
             f"{self.keys.prefix}/**", zenoh.handlers.Callback(self._on_sample, indirect=False)
@@ -298,6 +300,8 @@ class Spy:
                 return
             if output:
                 self.first_k.setdefault(key, k)
+            elif key == self._legacy.tick:
+                self.tick_messages.append((time.monotonic(), payload))
             self.counts[key] += 1
             self.last[key] = payload
 

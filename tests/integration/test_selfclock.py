@@ -320,6 +320,20 @@ def test_self_clocked_ticks_follow_the_frame_lock(
     ks = np.array([m["k"] for m in ticks])
     assert ks.tolist() == list(range(92))
     assert spy.count("hilswarm/lead_follow_mocap/tick") > 20  # schedules as the lock moved
+    # Each moved schedule went out once the senses of the tick before its first were over
+    # (FrameSchedule.quiet_send_time: a frame after that tick's due time), not into them.
+    # The anchor moves by under a frame, so sent at once they would come ~1 ms after that
+    # due time; held, a frame (10 ms) and ~1 ms later. (Repeats, the same message, aside.)
+    after_due = []
+    previous = b""
+    for arrived, payload in list(spy.tick_messages):
+        if payload != previous and bus.is_schedule(payload):
+            moved = bus.decode_schedule(payload)
+            if moved.first >= 2:
+                after_due.append(arrived - (moved.t0 + (moved.first - 1) * moved.dt))
+        previous = payload
+    assert len(after_due) > 20, after_due
+    assert np.median(after_due) > 0.7 * FRAME_S, np.percentile(after_due, [10, 50, 90])
     scheduled = np.array([m["scheduled_s"] for m in ticks])[10:]
     assert phase_spread(scheduled, FRAME_S) < 0.5e-3, phase_spread(scheduled, FRAME_S)
     for agent in ("leader", "f1", "f2"):  # the agents sensed just after the newest frame

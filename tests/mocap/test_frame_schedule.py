@@ -100,3 +100,35 @@ def test_the_record_says_when_the_ticks_spread(self_clocked: bool, said: bool) -
     text = schedule.report(ACQUIRE_FRAMES, now)
     assert text is not None and text.startswith("locked: ")
     assert ("the agents' ticks spread over 3 frames" in text) is said
+
+
+def test_a_moved_schedule_goes_out_once_the_ticks_senses_are_over() -> None:
+    """A schedule the lock moved is sent after the tick's senses (the spread's frames after
+    its due time, one frame without a spread), not into them; at once when that would leave
+    the moved tick under a tenth of a period to get it, and without a lock."""
+    dt = 1.0 / 23.0  # 23 Hz control [s]
+    f = 1.0 / 240.0  # 240 Hz frames [s]
+    spread = FrameSchedule(
+        dt,
+        MocapSettings(system="sim", rate_hz=240.0, tick_spread_frames=8),
+        realtime=True,
+        self_clocked=True,
+    )
+    due = 5.0
+    # The moved tick one period on, within a frame either way: 8 frames leave 10.2 +- 4.2 ms.
+    for shift in (-0.99 * f, 0.0, 0.99 * f):
+        assert spread.quiet_send_time(due, due + dt + shift) == pytest.approx(due + 8 * f)
+    # Under a tenth of a period after the senses: at once.
+    assert spread.quiet_send_time(due, due + 8 * f + 0.09 * dt) == due
+    # No spread: one frame after the tick, when no agent senses until the next tick.
+    plain = FrameSchedule(
+        dt, MocapSettings(system="sim", rate_hz=240.0), realtime=True, self_clocked=True
+    )
+    assert plain.quiet_send_time(due, due + dt) == pytest.approx(due + f)
+    # With tick messages the spread has no effect: one frame as well.
+    ticked = FrameSchedule(
+        dt, MocapSettings(system="sim", rate_hz=240.0, tick_spread_frames=8), realtime=True
+    )
+    assert ticked.quiet_send_time(due, due + dt) == pytest.approx(due + f)
+    # No lock (no mocap, or lockstep): nothing moves, at once.
+    assert FrameSchedule(dt, None, realtime=True).quiet_send_time(due, due + dt) == due
