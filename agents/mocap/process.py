@@ -13,7 +13,9 @@ mocap_runner`). It
    runs the body's filter (:mod:`.filter`), counts occluded frames, and publishes
    (:mod:`.message`); bodies the experiment does not use are not published;
    — with ``tick_frames_only`` in a self-clocked run only the frames its ticks can use, and a
-   keep-alive (:mod:`.decimation`: it hears the manager's schedule on the tick key);
+   keep-alive (:mod:`.decimation`: it hears the manager's schedule on the tick key); with
+   ``tick_spread_frames`` the bodies whose agents sense at this frame first (:mod:`.put_order`,
+   from the same schedule);
 4. after the poses of a frame, puts the frame clock (``mocap_clock``: frame number, frame time
    on this host's CLOCK_MONOTONIC, :mod:`.frame_clock`), which the instance manager locks the
    realtime ticks to;
@@ -54,6 +56,7 @@ from hilswarm.agents.mocap.config import MocapSettings
 from hilswarm.agents.mocap.decimation import PoseDecimator
 from hilswarm.agents.mocap.filter import FilterBank, FilterTuning
 from hilswarm.agents.mocap.frames import convention
+from hilswarm.agents.mocap.put_order import PutOrder
 
 logger = logging.getLogger(__name__)
 
@@ -130,6 +133,10 @@ class MocapProcess:
             1.0 / settings.rate_hz,
             keep_alive=max(1, settings.hold_frames // 2) if settings.tick_frames_only else 1,
         )
+        # the bodies are the agents' own, in the graph's order: body i's agent has phase i
+        self.put_order = PutOrder(
+            [settings.tick_phase_s(i) for i in range(n)], 1.0 / settings.rate_hz
+        )
         self.frames = 0
         self.skipped = 0
 
@@ -184,8 +191,9 @@ class MocapProcess:
         number, time_s, received = frame.number, frame.time_s, frame.received_s
         host_time = received - latency  # the frame's time on this host's clock
         if self.decimator.wanted(host_time):
-            for i, name in enumerate(self.bodies):
-                publisher = self._publishers.get(name)
+            bodies, publishers = self.bodies, self._publishers
+            for i in self.put_order.order(host_time):
+                publisher = publishers.get(bodies[i])
                 if publisher is not None:
                     publisher.put(
                         message.encode_row(
@@ -195,11 +203,12 @@ class MocapProcess:
         if self._tick_sub is not None and self.decimator.ticked:
             self._tick_sub.undeclare()  # tick messages may come at any rate: no more needed
             self._tick_sub = None
-            logger.warning(
-                "tick_frames_only has no effect in this run: it is driven by tick messages "
-                '(agents on other hosts, an XBee gateway or realtime_clock = "manager"); '
-                "every frame's poses are published"
-            )
+            if self.settings.tick_frames_only:
+                logger.warning(
+                    "tick_frames_only has no effect in this run: it is driven by tick messages "
+                    '(agents on other hosts, an XBee gateway or realtime_clock = "manager"); '
+                    "every frame's poses are published"
+                )
         clock_pub = self._clock_pub
         if clock_pub is not None:  # see frame_clock
             clock_pub.put(frame_clock.encode(number, host_time))
@@ -210,16 +219,20 @@ class MocapProcess:
 
     def on_tick_key(self, sample: zenoh.Sample) -> None:
         """A message on the tick key (a Zenoh thread): the manager's schedule of a
-        self-clocked run is handed to the decimator; a tick message means a run driven by
-        tick messages, whose frames are all published (:mod:`.decimation`)."""
+        self-clocked run is handed to the decimator and the put order; a tick message means a
+        run driven by tick messages, whose frames are all published, each in the bodies' own
+        order (:mod:`.decimation`, :mod:`.put_order`)."""
         payload = sample.payload.to_bytes()
         if not bus.is_schedule(payload):
             self.decimator.every_frame()  # the frame loop then stops listening
+            self.put_order.schedule = None
             return
         try:
-            self.decimator.schedule = bus.decode_schedule(payload)
+            schedule = bus.decode_schedule(payload)
         except bus.BusMessageError:
             return  # not the manager's (it alone may put here): ignored
+        self.decimator.schedule = schedule
+        self.put_order.schedule = schedule
 
     # -- main --------------------------------------------------------------------------------
 
@@ -235,7 +248,8 @@ class MocapProcess:
             self._status_pub = session.declare_publisher(self.keys.mocap_status, **bus.DATA_QOS)
             self._clock_pub = session.declare_publisher(self.keys.mocap_clock, **POSE_QOS)
             entities.append(session.liveliness().declare_token(self.keys.alive(MOCAP_NAME)))
-            if self.settings.tick_frames_only:  # the schedule says which frames to publish
+            if self.settings.tick_frames_only or self.put_order.spread:
+                # the schedule says which frames to publish, and whose poses first
                 self._tick_sub = session.declare_subscriber(self.keys.tick, self.on_tick_key)
             self.publish_status("connecting", f"{self.settings.system} at {self.settings.host}")
             try:

@@ -61,12 +61,13 @@ class Rig:
         pose_wait_s: float = 0.0,
         clock: Callable[[], float] = time.monotonic,
         tick_frames_only: bool = False,
+        tick_spread_frames: int = 1,
     ) -> None:
         self.sim = QtmSimulator(sim)
         self.sim.start()
         settings = MocapSettings(
             system="sim", rate_hz=sim.rate_hz, hold_frames=hold_frames,
-            tick_frames_only=tick_frames_only,
+            tick_frames_only=tick_frames_only, tick_spread_frames=tick_spread_frames,
         )  # fmt: skip
         self.process = MocapProcess(
             settings, EXPERIMENT, sim.bodies, endpoints,
@@ -385,6 +386,63 @@ def test_by_default_every_frame_is_published_whatever_the_schedule(router: list[
         wait_for(lambda: len(got) >= start + 40, "40 more poses")
         assert consecutive(got[start:], rig)
         assert rig.process.decimator.left_out == 0
+    finally:
+        del sub, tick_pub
+        rig.close()
+
+
+def test_with_a_spread_the_bodies_that_sense_at_a_frame_are_put_first(
+    router: list[str],
+) -> None:
+    """``tick_spread_frames = 2``, four bodies (agents 0 and 2 at the swarm's due time, 1 and
+    3 a frame later): given the schedule, the poses of the frame before each phase's senses
+    come with that phase's bodies first; the other frames' in the bodies' own order. Frames
+    from the real simulator through qtm-rt, on a real bus (one publisher session: its puts
+    arrive in order)."""
+    rate = 100.0
+    period = 1 / rate
+    bodies = ("f0", "f1", "f2", "f3")
+    rig = Rig(
+        router, SimSettings(bodies=bodies, rate_hz=rate), hold_frames=10, tick_spread_frames=2
+    )
+    keys = bus.BusKeys(EXPERIMENT)
+    got: list[tuple[float, str]] = []  # (frame time, body) in arrival order
+    sub = rig.session.declare_subscriber(
+        f"{keys.prefix}/mocap/*",
+        zenoh.handlers.Callback(
+            lambda s: got.append(
+                (message.decode(s.payload.to_bytes()).frame_time_s, str(s.key_expr))
+            )
+        ),
+    )
+    tick_pub = rig.session.declare_publisher(keys.tick)
+    try:
+        for body in bodies:
+            rig.sim.set_truth(body, np.zeros(6))
+        rig.source.wait_first()
+        wait_for(lambda: len(got) >= 8, "the first poses")
+        natural = [keys.mocap(b) for b in bodies]
+        assert [b for _, b in got[-4:]] == natural  # no schedule: the bodies' own order
+        # Ticks every 6 frames, each due 3 ms after a frame (the simulator stamps frames with
+        # this host's clock, the one the schedule uses).
+        dt, t0 = 6 * period, got[-1][0] + 0.003
+        tick_pub.put(bus.encode_schedule(bus.ScheduleMessage(0, 10_000, t0, dt)))
+        wait_for(lambda: rig.process.put_order.schedule is not None, "the schedule")
+        start = len(got) + 8  # poses on their way when it came may follow
+        wait_for(lambda: len(got) >= start + 4 * 24, "24 more frames")
+        frames: dict[float, list[str]] = {}
+        for time_s, body in got[start:]:
+            frames.setdefault(time_s, []).append(body)
+        seen = {0: 0, 1: 0, None: 0}
+        for time_s, order in frames.items():
+            if len(order) < 4:
+                continue  # the last frame, still arriving
+            phase = next((p for p in (0, 1) if (t0 + p * period - time_s) % dt < period), None)
+            first = {0: ["f0", "f2"], 1: ["f1", "f3"], None: ["f0", "f1"]}[phase]
+            assert order[:2] == [keys.mocap(b) for b in first], (phase, order)
+            assert sorted(order) == natural
+            seen[phase] += 1
+        assert seen[0] >= 2 and seen[1] >= 2 and seen[None] >= 6, seen
     finally:
         del sub, tick_pub
         rig.close()
