@@ -14,3 +14,5 @@ for b in benchmarks/*.py; do
   echo "-- $b --short"
   timeout 600 .venv/bin/python "$b" --short
 done
+echo "-- benchmarks/mocap_latency.py --short --spread"
+timeout 600 .venv/bin/python benchmarks/mocap_latency.py --short --spread
