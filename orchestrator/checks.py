@@ -32,6 +32,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from collections.abc import Container, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,6 +82,10 @@ MANY_TICKS = 5_000_000
 #: a spread of 8 frames, 23 % left, more than halved the pose latency's p99 in most runs; 10
 #: frames, 4 % left, was no better than none).
 SPREAD_ANSWER_FRACTION = 0.2
+#: ``[mocap]`` locked ticks with no spread: suggest ``tick_spread_frames`` from this many agents
+#: per core that all sense at one frame (docs/mocap.md: on 2 cores at 240 Hz, 4 agents met the
+#: pose latency's target without a spread, 8 and 16 missed it without and met it with one).
+SPREAD_ADVICE_AGENTS_PER_CORE = 4
 
 
 @dataclass
@@ -254,6 +259,8 @@ def _check_mocap_timing(parts: ExperimentParts, report: CheckReport) -> None:
             )
     if realtime:
         _check_spread_margin(parts, report)
+        if not remote and self_clocked(settings.mode, settings.realtime_clock, parts.gateway):
+            _advise_spread(parts, report)
     if settings.rate_hz <= mocap.rate_hz:
         return
     report.warnings.append(
@@ -266,6 +273,40 @@ def _check_mocap_timing(parts: ExperimentParts, report: CheckReport) -> None:
             "sense the last one again), and the ticks cannot lock to the frames "
             f"(docs/mocap.md); use rate_hz <= {mocap.rate_hz:g} Hz, or a faster frame rate if "
             "the system has one",
+        )
+    )
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (its agents are forked from it)."""
+    return len(os.sched_getaffinity(0))
+
+
+def _advise_spread(parts: ExperimentParts, report: CheckReport) -> None:
+    """Many agents per core, ticks locked to the frames, no spread: every agent senses at the
+    same frame and their ticks run one after another, so the last ones sense several ms after
+    it. Warn, with the spread that fits (:data:`SPREAD_ADVICE_AGENTS_PER_CORE`)."""
+    mocap, settings = parts.mocap, parts.settings
+    agents, cores = len(parts.agents), available_cores()
+    if mocap.tick_spread_frames > 1 or not mocap.tick_lock:
+        return
+    if agents < SPREAD_ADVICE_AGENTS_PER_CORE * cores:
+        return
+    fitting = min(
+        agents, math.floor((1.0 - SPREAD_ANSWER_FRACTION) * mocap.rate_hz / settings.rate_hz)
+    )
+    if fitting < 2:
+        return  # the frames come too seldom for turns
+    report.warnings.append(
+        Problem(
+            parts.path,
+            "mocap.tick_spread_frames",
+            f"{agents} agents on {cores} cores all sense at one frame: their ticks run one "
+            "after another, and the last ones sense several ms after it (16 agents at 240 Hz "
+            "on 2 cores: p99 ~10 ms from frame to sense, against a frame period of 4.2 ms); "
+            f"tick_spread_frames = {fitting} lets them take turns over the frames (with "
+            "tick_lag_ms = 0.25 and pose_wait_ms just under a frame period: p99 3.2-3.7 ms "
+            'there; docs/mocap.md, "Ticks spread over the frames")',
         )
     )
 

@@ -167,3 +167,32 @@ def test_a_spread_leaving_the_last_agents_little_time_warns(tmp_path: Path) -> N
     (warning,) = [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
     assert "leave the last agents 3.48 ms (8% of the 43.5 ms control period)" in warning.message
     assert "3 frames leave 20% or more" in warning.message
+
+
+def test_many_agents_per_core_sensing_at_one_frame_get_the_spread_suggested(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ticks locked to the frames, no spread, at least SPREAD_ADVICE_AGENTS_PER_CORE agents per
+    core: ``check`` warns and names the spread that fits (100 Hz frames, 20 Hz control: up to
+    4 frames, at most one per agent: 3). Not with fewer agents per core, a spread already set,
+    or tick messages (which a spread does not change)."""
+    from hilswarm.orchestrator import checks
+
+    monkeypatch.setattr(checks, "SPREAD_ADVICE_AGENTS_PER_CORE", 1)  # the demo has 3 agents
+    monkeypatch.setattr(checks, "available_cores", lambda: 3)
+    report = checks.check_file(write(tmp_path, DEMO))
+    assert report.ok
+    (warning,) = [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
+    assert "3 agents on 3 cores all sense at one frame" in warning.message
+    assert "tick_spread_frames = 3 lets them take turns" in warning.message
+    old = "hold_frames = 50 "
+    others = [
+        DEMO.replace(old, "tick_spread_frames = 2\n" + old, 1),
+        DEMO.replace('mode = "realtime"', 'mode = "realtime"\nrealtime_clock = "manager"', 1),
+    ]
+    for text in others:
+        report = checks.check_file(write(tmp_path, text))
+        assert not [w for w in report.warnings if "all sense at one frame" in w.message]
+    monkeypatch.setattr(checks, "available_cores", lambda: 4)  # under one agent per core
+    report = checks.check_file(write(tmp_path, DEMO))
+    assert not [w for w in report.warnings if w.key == "mocap.tick_spread_frames"]
