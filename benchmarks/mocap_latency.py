@@ -49,6 +49,7 @@ carried in every message). Target: p99 under one frame period, for 16 bodies at 
     python benchmarks/mocap_latency.py --rates 240 --agents 4 8 16   # by agents per core
     python benchmarks/mocap_latency.py --spread   # the ticks spread over the frames, as
                                                   # docs/mocap.md gives it for many agents
+    python benchmarks/mocap_latency.py --settle-load 1   # each rate begun on a quiet machine
 
 Prints the 1-minute load at the start, one line per rate with the verdict, and one JSON line
 per rate (``{"rate_hz": ...}``; keys in docs/mocap.md, "Benchmark"); exit status 0 when every
@@ -80,6 +81,7 @@ from hilswarm.agents import bus
 from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.agents.mocap import message
 from hilswarm.agents.mocap.config import MocapSettings
+from swarm_ticks import settle
 
 EXPERIMENT = "mocap_latency"
 #: What the p50/p99 figures are.
@@ -529,6 +531,13 @@ def main(argv: list[str] | None = None) -> int:
         "100 Hz: 3, 0.5, 8.5); explicit --tick-spread/--lag-ms/--pose-wait-ms win",
     )
     parser.add_argument(
+        "--settle-load",
+        type=float,
+        metavar="LOAD",
+        help="before each rate's run, wait (up to 4 min) until the 1-minute load average is "
+        "below LOAD (the previous run's processes raise it)",
+    )
+    parser.add_argument(
         "--no-subscriber",
         action="store_true",
         help="skip the subscriber-level figure (mocap path without a run)",
@@ -554,6 +563,7 @@ def main(argv: list[str] | None = None) -> int:
             spread = best[0] if args.tick_spread is None else args.tick_spread
             lag_ms = best[1] if lag_ms is None else lag_ms
             wait_ms = best[2] if wait_ms is None else wait_ms
+        settle(args.settle_load)
         result = measure_controller(
             rate, agents, seconds, args.control_rate, locked=not args.free, lag_ms=lag_ms,
             pose_wait_ms=wait_ms, tick_frames_only=args.tick_frames_only, tick_spread=spread,
