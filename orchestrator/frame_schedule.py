@@ -27,9 +27,9 @@ FRAME_LOCK_REPORT_S = 10.0
 #: How long a frame-locked run waits before tick 0 for the frames that set the lock [s].
 FRAME_ACQUIRE_WAIT_S = 2.0
 #: A schedule moved by the lock goes out after the agents' senses only if that is at least
-#: this fraction of a tick period before the tick it moves (4.3 ms at 23 Hz: about twice a
-#: schedule's p99 delivery to 16 agents on a loaded 2-core machine). A schedule that comes
-#: later still only shifts that one tick by under a frame.
+#: this fraction of a tick period before the tick it moves (4.3 ms at 23 Hz, above a pose's
+#: p99 delivery to 16 agents on a loaded 2-core machine, 3-4 ms). A schedule that comes later
+#: still only shifts that one tick by under a frame.
 SCHEDULE_LEAD_FRACTION = 0.1
 
 
