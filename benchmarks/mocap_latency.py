@@ -81,6 +81,7 @@ from hilswarm.agents import bus
 from hilswarm.agents.mcap_io import iter_messages
 from hilswarm.agents.mocap import message
 from hilswarm.agents.mocap.config import MocapSettings
+from hilswarm.orchestrator.checks import fitting_spread
 from swarm_ticks import settle
 
 EXPERIMENT = "mocap_latency"
@@ -454,8 +455,7 @@ def spread_settings(
     mocap rate ``rate_hz`` and control rate ``control_rate_hz`` [Hz]: as many frames as leave
     the last phase a fifth of the control period to answer (what ``hilswarm check`` asks for
     without a warning), at most one per agent; the lag and the wait measured best there."""
-    frames = math.floor(0.8 * rate_hz / control_rate_hz + 1e-9)
-    spread = max(1, min(agents, frames))
+    spread = max(1, min(agents, fitting_spread(rate_hz, control_rate_hz)))
     lag_ms, wait_ms = SPREAD_MEASURED.get(
         rate_hz, (SPREAD_LAG_MS, SPREAD_WAIT_FRAMES * 1e3 / rate_hz)
     )

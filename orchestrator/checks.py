@@ -277,6 +277,12 @@ def _check_mocap_timing(parts: ExperimentParts, report: CheckReport) -> None:
     )
 
 
+def fitting_spread(mocap_rate_hz: float, control_rate_hz: float) -> int:
+    """The most frames ``tick_spread_frames`` may span and still leave the last phase's agents
+    :data:`SPREAD_ANSWER_FRACTION` of the control period to answer (at least 1)."""
+    return max(1, math.floor((1.0 - SPREAD_ANSWER_FRACTION) * mocap_rate_hz / control_rate_hz))
+
+
 def available_cores() -> int:
     """CPU cores this process may run on (its agents are forked from it)."""
     return len(os.sched_getaffinity(0))
@@ -292,9 +298,7 @@ def _advise_spread(parts: ExperimentParts, report: CheckReport) -> None:
         return
     if agents < SPREAD_ADVICE_AGENTS_PER_CORE * cores:
         return
-    fitting = min(
-        agents, math.floor((1.0 - SPREAD_ANSWER_FRACTION) * mocap.rate_hz / settings.rate_hz)
-    )
+    fitting = min(agents, fitting_spread(mocap.rate_hz, settings.rate_hz))
     if fitting < 2:
         return  # the frames come too seldom for turns
     report.warnings.append(
@@ -324,7 +328,7 @@ def _check_spread_margin(parts: ExperimentParts, report: CheckReport) -> None:
     answer = mocap.spread_left_s(period)
     if not 0.0 < answer < SPREAD_ANSWER_FRACTION * period:
         return  # fits comfortably, or refused already (it does not fit in one period)
-    fitting = max(1, math.floor((1.0 - SPREAD_ANSWER_FRACTION) * mocap.rate_hz / settings.rate_hz))
+    fitting = fitting_spread(mocap.rate_hz, settings.rate_hz)
     report.warnings.append(
         Problem(
             parts.path,

@@ -61,7 +61,7 @@ class PutOrder:
     def order(self, frame_time_s: float) -> tuple[int, ...]:
         """Body indices in the order to put the poses of the frame of time ``frame_time_s``."""
         schedule = self.schedule
-        if schedule is None or len(self._phases) < 2:
+        if schedule is None or not self.spread:
             return self.natural
         t0, dt, period = schedule.t0, schedule.dt, self.frame_period_s
         for phase in self._phases:
