@@ -82,7 +82,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 from hilswarm.agents.agent_config import (  # also this module's interface
     AgentConfig,
     AgentConfigError,
@@ -377,9 +377,7 @@ class Agent:
             else:
                 event.clear()
 
-        self._entities.append(
-            publisher.declare_matching_listener(zenoh.handlers.Callback(on_status, indirect=False))
-        )
+        self._entities.append(publisher.declare_matching_listener(bus_callback.callback(on_status)))
         if bus.has_subscribers(publisher):
             event.set()
         return event
@@ -430,9 +428,8 @@ class Agent:
             entities.append(
                 session.declare_subscriber(
                     keys.y(neighbour),
-                    zenoh.handlers.Callback(
-                        lambda s, n=neighbour: receive_neighbour(n, s.payload.to_bytes()),
-                        indirect=False,
+                    bus_callback.callback(
+                        lambda s, n=neighbour: receive_neighbour(n, s.payload.to_bytes())
                     ),
                 )
             )
@@ -440,29 +437,25 @@ class Agent:
         entities.append(
             session.declare_subscriber(
                 keys.tick,
-                zenoh.handlers.Callback(
-                    lambda s: receive_tick(s.payload.to_bytes()), indirect=False
-                ),
+                bus_callback.callback(lambda s: receive_tick(s.payload.to_bytes())),
             )
         )
         entities.append(
             session.declare_subscriber(
                 keys.control,
-                zenoh.handlers.Callback(
-                    lambda s: receive_control(s.payload.to_bytes()), indirect=False
-                ),
+                bus_callback.callback(lambda s: receive_control(s.payload.to_bytes())),
             )
         )
         entities.append(
             session.declare_queryable(
                 keys.set(name),
-                zenoh.handlers.Callback(lambda q: put_work((_W_SET, q)), indirect=False),
+                bus_callback.callback(lambda q: put_work((_W_SET, q))),
             )
         )
         entities.append(
             session.liveliness().declare_subscriber(
                 keys.alive(MANAGER_NAME),
-                zenoh.handlers.Callback(self._on_manager_liveliness, indirect=False),
+                bus_callback.callback(self._on_manager_liveliness),
                 history=True,
             )
         )

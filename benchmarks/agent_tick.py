@@ -33,7 +33,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 from hilswarm.agents.agent import Agent, AgentConfig, build_hardware
 
 #: Control period of every case [s] (100 Hz, the benchmark target rate).
@@ -182,8 +182,6 @@ def zenoh_baseline(n: int) -> tuple[float, float] | None:
     Returns ``(CPU seconds of the calling thread, wall seconds)`` per put, or ``None`` when
     no loopback session can be opened.
     """
-    import zenoh  # noqa: PLC0415 - only this baseline needs it directly
-
     keys = bus.BusKeys("bench")
     try:
         router = bus.open_session(bus.listen_config([bus.loopback_endpoint(0)]))
@@ -195,9 +193,7 @@ def zenoh_baseline(n: int) -> tuple[float, float] | None:
     try:
         subscriber = router.declare_subscriber(
             keys.y("a0"),
-            zenoh.handlers.Callback(
-                lambda _s: received.__setitem__(0, received[0] + 1), indirect=False
-            ),
+            bus_callback.callback(lambda _s: received.__setitem__(0, received[0] + 1)),
         )
         client = bus.open_session(bus.client_config([endpoint]))
         try:

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 
 _Y_VALUES = np.array([0.5, -0.25, 1.0])
 _REPORT = bus.encode_report(bus.AgentTiming(), np.zeros(2), np.zeros(2))
@@ -206,20 +206,14 @@ def client(index: int, n: int, endpoint: str, pattern: str) -> None:
     entities = [
         session.declare_subscriber(
             keys.y(f"r{j}"),
-            zenoh.handlers.Callback(functools.partial(on_neighbour, j), indirect=False),
+            bus_callback.callback(functools.partial(on_neighbour, j)),
         )
         for j in neighbours
     ]
     if pattern == "clock":
-        entities.append(
-            session.declare_subscriber(
-                keys.control, zenoh.handlers.Callback(on_start, indirect=False)
-            )
-        )
+        entities.append(session.declare_subscriber(keys.control, bus_callback.callback(on_start)))
     else:
-        entities.append(
-            session.declare_subscriber(keys.tick, zenoh.handlers.Callback(on_tick, indirect=False))
-        )
+        entities.append(session.declare_subscriber(keys.tick, bus_callback.callback(on_tick)))
     entities.append(session.liveliness().declare_token(keys.alive(name)))
     sys.stdin.read()  # the parent closes stdin to stop us
     stop.set()
@@ -316,9 +310,9 @@ def run_bare(
             all_alive.set()
 
     entities = [
-        session.declare_subscriber(keys.all_outputs, zenoh.handlers.Callback(on_y, indirect=False)),
+        session.declare_subscriber(keys.all_outputs, bus_callback.callback(on_y)),
         session.liveliness().declare_subscriber(
-            keys.all_alive, zenoh.handlers.Callback(on_alive, indirect=False), history=True
+            keys.all_alive, bus_callback.callback(on_alive), history=True
         ),
     ]
     pattern = "clock" if self_clocked else "window" if window else "tick"

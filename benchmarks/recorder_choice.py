@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 import zenoh
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 
 #: A Frisbee bot's y (k, t, x, y, psi), as the agents publish it.
 PAYLOAD = bus.encode_vector(0, 0.0, [0.0, 0.0, 0.0])
@@ -78,7 +78,7 @@ def manager_figure(n: int, rate: float, seconds: float, *, with_recorder: bool) 
     def on_y(_sample: zenoh.Sample) -> None:
         received[0] += 1
 
-    keep = session.declare_subscriber("bench/*/y", zenoh.handlers.Callback(on_y, indirect=False))
+    keep = session.declare_subscriber("bench/*/y", bus_callback.callback(on_y))
     me = [sys.executable, __file__]
     children = []
     if with_recorder:

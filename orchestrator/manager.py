@@ -52,7 +52,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.agents.tick_engine import is_warmup, start_lead
 from hilswarm.orchestrator.experiment import Experiment, self_clocked
@@ -282,7 +282,7 @@ class InstanceManager:
             entities.append(
                 session.declare_subscriber(
                     keys.y(name),
-                    zenoh.handlers.Callback(self._y_callback(i), indirect=False),
+                    bus_callback.callback(self._y_callback(i)),
                 )
             )
         # u and x_hat arrive inside the agents' y reports; status and telemetry on their keys
@@ -295,35 +295,31 @@ class InstanceManager:
                 (f"{keys.agent(name, 'telemetry')}/*", self._on_vector),
                 (keys.telemetry_batches(name), self._on_telemetry),
             ):
-                entities.append(
-                    session.declare_subscriber(
-                        key, zenoh.handlers.Callback(callback, indirect=False)
-                    )
-                )
+                entities.append(session.declare_subscriber(key, bus_callback.callback(callback)))
         if self._frames.locking:
             entities.append(
                 session.declare_subscriber(
                     keys.mocap_clock,
-                    zenoh.handlers.Callback(self._on_frame_clock, indirect=False),
+                    bus_callback.callback(self._on_frame_clock),
                 )
             )
         entities.append(
             session.declare_subscriber(
                 keys.manager_request,
-                zenoh.handlers.Callback(self._on_request, indirect=False),
+                bus_callback.callback(self._on_request),
             )
         )
         for leaf in ("status", "stats"):  # explicit keys: see above
             entities.append(
                 session.declare_subscriber(
                     keys.gateway(leaf),
-                    zenoh.handlers.Callback(self._on_gateway, indirect=False),
+                    bus_callback.callback(self._on_gateway),
                 )
             )
         entities.append(
             session.liveliness().declare_subscriber(
                 keys.all_alive,
-                zenoh.handlers.Callback(self._on_liveliness, indirect=False),
+                bus_callback.callback(self._on_liveliness),
                 history=True,
             )
         )

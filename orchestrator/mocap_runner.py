@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.orchestrator.experiment import Experiment
 
@@ -116,7 +116,7 @@ class MocapRunner:
         self._entities.append(
             self._session.declare_subscriber(
                 bus.BusKeys(self.experiment.name, self.run_id).mocap_status,
-                zenoh.handlers.Callback(self._on_status, indirect=False),
+                bus_callback.callback(self._on_status),
             )
         )
         python = sys.executable

@@ -66,7 +66,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.mocap import message
 from hilswarm.agents.mocap.frames import world_to_ned, yaw_quaternion
@@ -190,20 +190,15 @@ class MocapPoseSource:
     def attach_bus(self, session: zenoh.Session, keys: bus.BusKeys) -> list[Any]:
         """Subscribe to this body and to the mocap status; returns the entities to keep."""
         entities: list[Any] = [
-            session.declare_subscriber(
-                keys.mocap(self.body), zenoh.handlers.Callback(self._on_pose, indirect=False)
-            ),
-            session.declare_subscriber(
-                keys.mocap_status, zenoh.handlers.Callback(self._on_status, indirect=False)
-            ),
+            session.declare_subscriber(keys.mocap(self.body), bus_callback.callback(self._on_pose)),
+            session.declare_subscriber(keys.mocap_status, bus_callback.callback(self._on_status)),
         ]
         for agent, body in self.neighbours.items():
             entities.append(
                 session.declare_subscriber(
                     keys.mocap(body),
-                    zenoh.handlers.Callback(
-                        lambda sample, agent=agent: self._on_neighbour(agent, sample),
-                        indirect=False,
+                    bus_callback.callback(
+                        lambda sample, agent=agent: self._on_neighbour(agent, sample)
                     ),
                 )
             )

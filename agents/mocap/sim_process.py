@@ -21,7 +21,7 @@ from types import FrameType
 from typing import Any
 
 import zenoh
-from hilswarm.agents import bus
+from hilswarm.agents import bus, bus_callback
 from hilswarm.agents.credentials import add_credentials_arguments, bus_access_from_args
 from hilswarm.agents.errors import HilswarmError
 from hilswarm.agents.mocap import message
@@ -87,9 +87,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     logger.warning("body %s: %s", body, exc)
 
             entities.append(
-                session.declare_subscriber(
-                    keys.mocap_truth(body), zenoh.handlers.Callback(on_truth, indirect=False)
-                )
+                session.declare_subscriber(keys.mocap_truth(body), bus_callback.callback(on_truth))
             )
         port = simulator.start()
         sys.stdout.write(f"port {port}\n")
