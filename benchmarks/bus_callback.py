@@ -78,6 +78,7 @@ def one_round(
     rate_hz: float,
 ) -> float:  # fmt: skip
     """CPU seconds per message of a fresh client process receiving ``n`` messages ``way``."""
+    matched.clear()  # the previous client's unmatch may not have been heard yet
     client = subprocess.Popen(
         [sys.executable, "-c", _CLIENT, endpoint, way, str(n)],
         stdout=subprocess.PIPE,
