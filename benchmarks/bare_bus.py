@@ -40,10 +40,10 @@ import tempfile
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import zenoh
+from cpu_sampler import CpuSampler
 from hilswarm.agents import bus, bus_callback
 
 _Y_VALUES = np.array([0.5, -0.25, 1.0])
@@ -80,61 +80,6 @@ class BareResult:
             return float("nan"), float("nan")
         p50, p99 = np.percentile(values, [50, 99], method="inverted_cdf")
         return float(p50) * 1e3, float(p99) * 1e3
-
-
-def process_cpu_s(pid: int) -> float | None:
-    """User + system CPU of process ``pid`` so far [s]; ``None`` when it is gone."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-class CpuSampler:
-    """CPU time of a set of processes over a run, read from ``/proc`` every ``period_s``.
-
-    A process that exits is counted up to its last reading (processes the runtime forks are
-    reaped at once, so their CPU cannot be read after the run). Start it once the processes
-    are up, stop it when the run's ticks are done.
-    """
-
-    def __init__(self, pids: list[int], period_s: float = 0.1) -> None:
-        self._first = {pid: process_cpu_s(pid) for pid in pids}
-        self._last = dict(self._first)
-        self._period_s = period_s
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-
-    def start(self) -> CpuSampler:
-        """Start sampling (returns itself)."""
-        self._thread.start()
-        return self
-
-    def _read(self) -> None:
-        for pid in self._last:
-            value = process_cpu_s(pid)
-            if value is not None:
-                self._last[pid] = value
-
-    def _sample(self) -> None:
-        while not self._stop.wait(self._period_s):
-            self._read()
-
-    def stop(self) -> None:
-        """Take a last reading and stop sampling (idempotent)."""
-        if not self._stop.is_set():
-            self._stop.set()
-            self._thread.join(5)
-            self._read()
-
-    def total_s(self) -> float:
-        """CPU of every process between start and stop [s]."""
-        return sum(
-            last - first
-            for first, last in zip(self._first.values(), self._last.values(), strict=True)
-            if first is not None and last is not None
-        )
 
 
 def _ring_neighbours(index: int, n: int) -> list[int]:

@@ -61,7 +61,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from bare_bus import BareResult, CpuSampler, process_cpu_s, run_bare
+from bare_bus import BareResult, run_bare
+from cpu_sampler import CpuSampler, process_cpu_s
 from hilswarm.agents import bus
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
