@@ -35,6 +35,7 @@ import argparse
 import cProfile
 import pstats
 import statistics
+import struct
 import sys
 import time
 from collections.abc import Callable
@@ -194,6 +195,54 @@ def numpy_baseline(repeats: int) -> float:
     return statistics.median(best)
 
 
+_HEADER = struct.Struct("<qd")
+
+
+def _numpy_steps(gain: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Six small numpy steps of the kind a tick takes (matvec, asarray, flags, encode,
+    decode, clip)."""
+    u = gain @ y
+    values = np.asarray(u, dtype=np.float64)
+    u.flags.writeable = False
+    payload = _HEADER.pack(1, DT) + values.tobytes()
+    decoded = np.frombuffer(payload, dtype="<f8", offset=_HEADER.size).copy()
+    return np.clip(decoded, -1.0, 1.0)
+
+
+def _python_steps(gain: list[list[float]], y: list[float]) -> list[float]:
+    """The same steps on Python floats (struct for the encoding)."""
+    u = [sum(g * v for g, v in zip(row, y, strict=True)) for row in gain]
+    payload = _HEADER.pack(1, DT) + struct.pack(f"<{len(u)}d", *u)
+    decoded = struct.unpack_from(f"<{len(u)}d", payload, _HEADER.size)
+    return [min(max(v, -1.0), 1.0) for v in decoded]
+
+
+def steps_after_idle(idle_s: float, n: int) -> dict[str, tuple[float, float]]:
+    """Median CPU seconds of :func:`_numpy_steps` and :func:`_python_steps`, ``(hot, after
+    idle_s of sleep)`` each: what the idle wait costs numpy code against plain Python."""
+    gain = [[3.01, 4.0, 0.0, 0.0], [0.0, 0.0, 3.01, 4.0]]
+    y = [4.0, 0.0, -4.0, 0.0]
+    cases = {
+        "numpy": (_numpy_steps, (np.array(gain), np.array(y))),
+        "python": (_python_steps, (gain, y)),
+    }
+    clock = time.thread_time
+    figures = {}
+    for name, (steps, args) in cases.items():
+        hot, cold = [], []
+        for _ in range(max(n, 200)):
+            start = clock()
+            steps(*args)
+            hot.append(clock() - start)
+        for _ in range(n):
+            time.sleep(idle_s)
+            start = clock()
+            steps(*args)
+            cold.append(clock() - start)
+        figures[name] = (statistics.median(hot), statistics.median(cold))
+    return figures
+
+
 def zenoh_baseline(n: int) -> tuple[float, float] | None:
     """Bare Zenoh put of a y message with its report, client -> loopback router.
 
@@ -286,6 +335,13 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print()
         put_cpu = None
+    if args.idle_ms:
+        steps = steps_after_idle(args.idle_ms / 1e3, idle_ticks)
+        print(
+            f"after {args.idle_ms:g} ms idle: six small numpy steps "
+            f"{steps['numpy'][0] * 1e6:.1f} -> {steps['numpy'][1] * 1e6:.1f} us CPU; the same in "
+            f"plain Python {steps['python'][0] * 1e6:.1f} -> {steps['python'][1] * 1e6:.1f} us"
+        )
     idle_head = f" {'after idle':>11} {'x hot':>6}" if args.idle_ms else ""
     print(
         f"{'case':<11} {'CPU/tick':>11} {'x matvec':>9} {'x put':>7}{idle_head}"
