@@ -178,6 +178,7 @@ def check(n: int, burn_s: float) -> str:
         )
         for i in range(n)
     ]
+    load = os.getloadavg()[0]
     sampler = CpuSampler([process.pid for process in processes]).start()
     child = sampler.pid or 0
     before = process_cpu_s(child) or 0.0
@@ -191,7 +192,7 @@ def check(n: int, burn_s: float) -> str:
         f"cpu sampler: {n} processes, measured {measured:.2f} s of CPU against {reported:.2f} s "
         f"they report (ratio {measured / reported:.2f}; each exit loses at most one period and "
         f"the start-up before the first reading); the sampling process used "
-        f"{1e3 * sampling / elapsed:.1f} ms of CPU per second"
+        f"{1e3 * sampling / elapsed:.1f} ms of CPU per second; load {load:.2f} (1 min)"
     )
 
 
