@@ -20,8 +20,8 @@ CPU to the manager's figure (~0.35 ms per tick at 32 agents x 100 Hz, docs/runni
 of CPU (measured against what they report, and what the sampling costs). Run with pids it is
 that child (``--period S PID...``): it prints ``ready`` after the
 first readings, reads every ``S`` seconds, and when its standard input closes prints one
-JSON line ``{"first": [...], "last": [...]}`` (CPU [s] per pid, in the order given; ``null``
-for a process already gone at the start) and exits.
+JSON line ``{"first": [...], "last": [...], "own": S}`` (CPU [s] per pid, in the order given,
+``null`` for a process already gone at the start; its own CPU [s]) and exits.
 """
 
 from __future__ import annotations
@@ -67,6 +67,7 @@ class CpuSampler:
         self._process: subprocess.Popen[str] | None = None
         self._first: list[float | None] = [None] * len(self._pids)
         self._last: list[float | None] = [None] * len(self._pids)
+        self.own_cpu_s = float("nan")  #: the sampling process's own CPU [s], after stop()
 
     def start(self) -> CpuSampler:
         """Take the first readings, then keep sampling in the child (returns itself)."""
@@ -81,11 +82,6 @@ class CpuSampler:
             raise RuntimeError("the CPU sampling process did not start")
         return self
 
-    @property
-    def pid(self) -> int | None:
-        """The sampling process's pid while it runs."""
-        return self._process.pid if self._process else None
-
     def stop(self) -> None:
         """Take a last reading and stop sampling (idempotent)."""
         process, self._process = self._process, None
@@ -96,6 +92,7 @@ class CpuSampler:
             line = _readline(process, _START_TIMEOUT_S)
             readings = json.loads(line)
             self._first, self._last = readings["first"], readings["last"]
+            self.own_cpu_s = float(readings["own"])
         except (ValueError, KeyError, TypeError) as exc:
             raise RuntimeError(f"the CPU sampling process answered {line!r}") from exc
         finally:
@@ -158,7 +155,7 @@ def _sample(pids: list[int], period_s: float) -> None:
             read(last)
             next_read += period_s
     read(last)
-    print(json.dumps({"first": first, "last": last}), flush=True)
+    print(json.dumps({"first": first, "last": last, "own": time.process_time()}), flush=True)
 
 
 def check(n: int, burn_s: float) -> str:
@@ -180,19 +177,18 @@ def check(n: int, burn_s: float) -> str:
     ]
     load = os.getloadavg()[0]
     sampler = CpuSampler([process.pid for process in processes]).start()
-    child = sampler.pid or 0
-    before = process_cpu_s(child) or 0.0
     started = time.monotonic()
     reported = sum(float(process.communicate(timeout=60)[0]) for process in processes)
-    sampling = (process_cpu_s(child) or 0.0) - before
-    elapsed = time.monotonic() - started
     sampler.stop()
+    elapsed = time.monotonic() - started
+    sampling = sampler.own_cpu_s
     measured = sampler.total_s()
     return (
         f"cpu sampler: {n} processes, measured {measured:.2f} s of CPU against {reported:.2f} s "
         f"they report (ratio {measured / reported:.2f}; each exit loses at most one period and "
         f"the start-up before the first reading); the sampling process used "
-        f"{1e3 * sampling / elapsed:.1f} ms of CPU per second; load {load:.2f} (1 min)"
+        f"{1e3 * sampling:.0f} ms of CPU in {elapsed:.1f} s, its start-up included; "
+        f"load {load:.2f} (1 min)"
     )
 
 
