@@ -7,9 +7,9 @@ up to its last reading.
 
 The readings are taken in a child process, not on a thread of the benchmark: the benchmark's
 process is also the process measured (the orchestrator or the bare bus's router), and a
-sampling thread there took the GIL from the bus callbacks it was measuring and added its own
-CPU to the manager's figure (~0.35 ms per tick at 32 agents x 100 Hz, docs/running.md,
-"Levers"). The child keeps each ``stat`` file open and re-reads it with ``pread``.
+sampling thread there took the GIL beside the bus callbacks it was measuring and added its
+own CPU to the manager's figure (14-20 µs per reading: ~5 ms per second at 34 processes). The
+child keeps each ``stat`` file open and re-reads it with ``pread``.
 
     sampler = CpuSampler(pids).start()   # after the processes are up
     ...                                  # the run
