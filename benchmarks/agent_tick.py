@@ -126,11 +126,28 @@ def offline_agent(config: AgentConfig) -> Agent:
     return agent
 
 
+def pause(idle_s: float, kind: str = "sleep") -> None:
+    """Wait ``idle_s`` [s] between two measured steps (not counted).
+
+    ``"sleep"``: the thread sleeps and the CPU may idle, as a realtime agent waits for its
+    next tick. ``"spin"``: the thread stays busy in a tight loop on the monotonic clock (the
+    CPU never idles and nothing else of this process runs): whatever the tick then pays more
+    than hot is not the CPU's idle state.
+    """
+    if kind == "spin":
+        end = time.monotonic() + idle_s
+        while time.monotonic() < end:
+            pass
+    else:
+        time.sleep(idle_s)
+
+
 def tick_loop(case: Case) -> Callable[..., float]:
     """A function running ``n`` more ticks of ``case``; returns CPU seconds per tick.
 
-    With ``idle_s`` > 0 the process sleeps that long before each tick (not counted): a
-    realtime agent waits for its next tick like that, and its tick starts with cold caches.
+    With ``idle_s`` > 0 the thread waits that long before each tick (not counted; ``kind``,
+    see :func:`pause`): a realtime agent waits for its next tick like that, and its tick
+    starts with cold caches.
     """
     agent = offline_agent(case.config)
     n_out = int(agent.hardware.vehicle.n_outputs)
@@ -140,7 +157,7 @@ def tick_loop(case: Case) -> Callable[..., float]:
     state = {"k": 0}
     clock = time.thread_time  # CPU time of this thread: what the agent pays, load or not
 
-    def run(n: int, idle_s: float = 0.0) -> float:
+    def run(n: int, idle_s: float = 0.0, kind: str = "sleep") -> float:
         k0 = state["k"]
         # What the manager and the neighbours send is encoded by them, not timed here.
         messages = [
@@ -161,7 +178,7 @@ def tick_loop(case: Case) -> Callable[..., float]:
         for outputs, tick_payload in messages:
             if idle_s:  # the condition measured: the process idle between ticks
                 spent += clock() - start
-                time.sleep(idle_s)
+                pause(idle_s, kind)
                 start = clock()
             for name, payload in outputs:
                 receive(name, payload)
@@ -217,9 +234,10 @@ def _python_steps(gain: list[list[float]], y: list[float]) -> list[float]:
     return [min(max(v, -1.0), 1.0) for v in decoded]
 
 
-def steps_after_idle(idle_s: float, n: int) -> dict[str, tuple[float, float]]:
+def steps_after_idle(idle_s: float, n: int, kind: str = "sleep") -> dict[str, tuple[float, float]]:
     """Median CPU seconds of :func:`_numpy_steps` and :func:`_python_steps`, ``(hot, after
-    idle_s of sleep)`` each: what the idle wait costs numpy code against plain Python."""
+    idle_s of waiting)`` each (``kind``: see :func:`pause`): what the wait costs numpy code
+    against plain Python."""
     gain = [[3.01, 4.0, 0.0, 0.0], [0.0, 0.0, 3.01, 4.0]]
     y = [4.0, 0.0, -4.0, 0.0]
     cases = {
@@ -235,7 +253,7 @@ def steps_after_idle(idle_s: float, n: int) -> dict[str, tuple[float, float]]:
             steps(*args)
             hot.append(clock() - start)
         for _ in range(n):
-            time.sleep(idle_s)
+            pause(idle_s, kind)
             start = clock()
             steps(*args)
             cold.append(clock() - start)
@@ -309,6 +327,13 @@ def main(argv: list[str] | None = None) -> int:
         help="also measure ticks that each follow this long idle [ms] (default: one period "
         "at 100 Hz, as a realtime agent; 0: skip)",
     )
+    parser.add_argument(
+        "--idle-kind",
+        choices=("sleep", "spin"),
+        default="sleep",
+        help="how the thread waits before each of those ticks: sleeping (default, as a realtime "
+        "agent) or spinning in a busy loop (the CPU never idles)",
+    )
     args = parser.parse_args(argv)
     if args.idle_ms < 0 or args.idle_ms > 1000:
         parser.error(f"--idle-ms {args.idle_ms}: expected 0..1000 ms")
@@ -335,18 +360,20 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print()
         put_cpu = None
+    waited = "idle" if args.idle_kind == "sleep" else "spinning"
     if args.idle_ms:
-        steps = steps_after_idle(args.idle_ms / 1e3, idle_ticks)
+        steps = steps_after_idle(args.idle_ms / 1e3, idle_ticks, args.idle_kind)
         print(
-            f"after {args.idle_ms:g} ms idle: six small numpy steps "
+            f"after {args.idle_ms:g} ms {waited}: six small numpy steps "
             f"{steps['numpy'][0] * 1e6:.1f} -> {steps['numpy'][1] * 1e6:.1f} us CPU; the same in "
             f"plain Python {steps['python'][0] * 1e6:.1f} -> {steps['python'][1] * 1e6:.1f} us"
         )
-    idle_head = f" {'after idle':>11} {'x hot':>6}" if args.idle_ms else ""
+    idle_head = f" {'after ' + ('idle' if args.idle_kind == 'sleep' else 'spin'):>11} {'x hot':>6}"
+    idle_head = idle_head if args.idle_ms else ""
+    idle_note = f"; {idle_ticks} ticks after {args.idle_ms:g} ms {waited} each)"
     print(
         f"{'case':<11} {'CPU/tick':>11} {'x matvec':>9} {'x put':>7}{idle_head}"
-        f"   ({ticks} ticks, dt {DT} s"
-        + (f"; {idle_ticks} ticks after {args.idle_ms:g} ms idle each)" if args.idle_ms else ")")
+        f"   ({ticks} ticks, dt {DT} s" + (idle_note if args.idle_ms else ")")
     )
     for case in chosen:
         run = tick_loop(case)
@@ -354,7 +381,7 @@ def main(argv: list[str] | None = None) -> int:
         ratio_put = f"{per_tick / put_cpu:7.1f}" if put_cpu else "      -"
         idle = ""
         if args.idle_ms:
-            cold = run(idle_ticks, args.idle_ms / 1e3)
+            cold = run(idle_ticks, args.idle_ms / 1e3, args.idle_kind)
             idle = f" {cold * 1e6:8.1f} us {cold / per_tick:6.1f}"
         print(
             f"{case.name:<11} {per_tick * 1e6:8.1f} us {per_tick / matvec:9.0f} {ratio_put}"

@@ -33,10 +33,27 @@ if [ "$want_apt" = 1 ]; then
   fi
 fi
 
-PY=${PYTHON:-python3}
+# The interpreter: Debian's own python3 (installed above; built with profile-guided and
+# link-time optimisation), not whichever python3 comes first on PATH (pyenv, a self-built
+# CPython). Measured on the same machine, an agent's tick costs ~25 % less CPU on it
+# (docs/running.md, Levers). PYTHON=/path/to/python3 chooses another (3.11 or newer).
+PY=${PYTHON:-/usr/bin/python3}
+if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
+  found=$("$PY" -c 'import sys; print(sys.version.split()[0])' 2>/dev/null || echo "not found")
+  echo "setup.sh: hilswarm needs Python 3.11 or newer; $PY is $found" >&2
+  echo "          (set PYTHON=/path/to/python3.11 or newer)" >&2
+  exit 1
+fi
 if [ ! -x .venv/bin/python ]; then
-  echo "== creating virtualenv .venv"
+  echo "== creating virtualenv .venv ($("$PY" -c 'import sys; print(sys.executable, sys.version.split()[0])'))"
   "$PY" -m venv .venv
+else
+  made_with=$(sed -n 's/^executable = //p' .venv/pyvenv.cfg 2>/dev/null || true)
+  wanted=$(readlink -f "$(command -v "$PY")")
+  if [ -n "$made_with" ] && [ "$(readlink -f "$made_with")" != "$wanted" ]; then
+    echo "== note: .venv runs $made_with, not $wanted; kept as it is"
+    echo "   (to switch: rm -rf .venv && bash scripts/setup.sh)"
+  fi
 fi
 echo "== installing hilswarm (editable) with dev tools"
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
