@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import os
+import platform
 import pstats
 import statistics
 import struct
@@ -350,6 +352,10 @@ def main(argv: list[str] | None = None) -> int:
 
     matvec = numpy_baseline(repeats)
     put = None if args.no_zenoh else zenoh_baseline(2000 if args.short else 20000)
+    print(
+        f"python {platform.python_version()} ({os.path.realpath(sys.executable)}), "
+        f"numpy {np.__version__}"
+    )
     print(f"baselines: numpy K @ y (2x4) {matvec * 1e6:.2f} us CPU", end="")
     if put:
         print(

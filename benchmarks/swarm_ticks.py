@@ -54,6 +54,7 @@ import json
 import logging
 import math
 import os
+import platform
 import resource
 import sys
 import tempfile
@@ -523,7 +524,8 @@ def main(argv: list[str] | None = None) -> int:
     fleets = ["frisbee", "simulated"] if args.vehicle == "both" else [args.vehicle]
     print(
         f"fleets {', '.join(fleets)}; recording: {args.record}; zenoh runtime: "
-        f"{args.zenoh_runtime}; realtime runs of {args.seconds:g} s; {os.cpu_count()} CPUs\n"
+        f"{args.zenoh_runtime}; realtime runs of {args.seconds:g} s; {os.cpu_count()} CPUs; "
+        f"python {platform.python_version()} ({os.path.realpath(sys.executable)})\n"
         "p50/p99: tick completion (scheduled time to last y_k in; a late tick counts as inf);\n"
         "mgr/agt/rec ms: CPU per tick of the orchestrator process (Zenoh router included), of "
         "one agent (mean) and of the recorder process;\nup s: agents started (the fork server "

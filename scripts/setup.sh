@@ -35,7 +35,7 @@ fi
 
 # The interpreter: Debian's own python3 (installed above; built with profile-guided and
 # link-time optimisation), not whichever python3 comes first on PATH (pyenv, a self-built
-# CPython). Measured on the same machine, an agent's tick costs ~25 % less CPU on it
+# CPython). Measured on the same machine, an agent's tick costs 10-25 % less CPU on it
 # (docs/running.md, Levers). PYTHON=/path/to/python3 chooses another (3.11 or newer).
 PY=${PYTHON:-/usr/bin/python3}
 if ! "$PY" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
