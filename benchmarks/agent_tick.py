@@ -20,6 +20,7 @@ that has a subscriber for it.
     python benchmarks/agent_tick.py --short         # CI-sized (< 20 s)
     python benchmarks/agent_tick.py --profile frisbee   # cProfile of one case
     python benchmarks/agent_tick.py --idle-ms 0     # hot ticks only
+    python benchmarks/agent_tick.py --idle-kind spin    # wait in a busy loop, not asleep
 
 The CPU per tick is measured twice: back to back (hot: the figure of the table's first
 column, the agent's own work at its cheapest) and, for fewer ticks, each after ``--idle-ms``
