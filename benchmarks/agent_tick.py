@@ -129,6 +129,11 @@ def offline_agent(config: AgentConfig) -> Agent:
     return agent
 
 
+#: How a wait before a measured tick is named in the output, per ``--idle-kind``: (the text,
+#: the column's head).
+WAIT_WORDS = {"sleep": ("idle", "after idle"), "spin": ("spinning", "after spin")}
+
+
 def pause(idle_s: float, kind: str = "sleep") -> None:
     """Wait ``idle_s`` [s] between two measured steps (not counted).
 
@@ -179,7 +184,7 @@ def tick_loop(case: Case) -> Callable[..., float]:
         spent = 0.0
         start = clock()
         for outputs, tick_payload in messages:
-            if idle_s:  # the condition measured: the process idle between ticks
+            if idle_s:  # the condition measured: the thread waits between ticks
                 spent += clock() - start
                 pause(idle_s, kind)
                 start = clock()
@@ -332,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--idle-kind",
-        choices=("sleep", "spin"),
+        choices=tuple(WAIT_WORDS),
         default="sleep",
         help="how the thread waits before each of those ticks: sleeping (default, as a realtime "
         "agent) or spinning in a busy loop (the CPU never idles)",
@@ -367,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         print()
         put_cpu = None
-    waited = "idle" if args.idle_kind == "sleep" else "spinning"
+    waited, column = WAIT_WORDS[args.idle_kind]
     if args.idle_ms:
         steps = steps_after_idle(args.idle_ms / 1e3, idle_ticks, args.idle_kind)
         print(
@@ -375,8 +380,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{steps['numpy'][0] * 1e6:.1f} -> {steps['numpy'][1] * 1e6:.1f} us CPU; the same in "
             f"plain Python {steps['python'][0] * 1e6:.1f} -> {steps['python'][1] * 1e6:.1f} us"
         )
-    idle_head = f" {'after ' + ('idle' if args.idle_kind == 'sleep' else 'spin'):>11} {'x hot':>6}"
-    idle_head = idle_head if args.idle_ms else ""
+    idle_head = f" {column:>11} {'x hot':>6}" if args.idle_ms else ""
     idle_note = f"; {idle_ticks} ticks after {args.idle_ms:g} ms {waited} each)"
     print(
         f"{'case':<11} {'CPU/tick':>11} {'x matvec':>9} {'x put':>7}{idle_head}"
