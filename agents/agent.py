@@ -102,6 +102,7 @@ from hilswarm.agents.link_recovery import (
     reconnect_within,
 )
 from hilswarm.agents.rehearsal import rehearse
+from hilswarm.agents.scheduling import use_batch_scheduling
 from hilswarm.agents.telemetry_feed import DUPLICATE_CHANNELS, TelemetryFeed
 from hilswarm.agents.tick_engine import (  # noqa: F401 - re-exported: the engine's constants
     MAX_NEIGHBOUR_HISTORY,
@@ -185,6 +186,9 @@ class Agent:
             own).
         clock: monotonic clock [s] used for tick timings.
         startup_timeout_s: bound on waiting for the bus and the manager.
+        own_process: the agent owns its process (:func:`run_agent`): a lockstep run then puts
+            the process's threads under ``SCHED_BATCH`` at its first tick
+            (:mod:`hilswarm.agents.scheduling`); off for an agent inside another program.
     """
 
     def __init__(
@@ -196,8 +200,10 @@ class Agent:
         hardware_factory: Callable[..., AgentHardware] = build_hardware,
         clock: Callable[[], float] = time.perf_counter,
         startup_timeout_s: float = DEFAULT_STARTUP_TIMEOUT_S,
+        own_process: bool = False,
     ) -> None:
         self.config = config
+        self._own_process = own_process
         self.endpoints = list(endpoints)
         self.keys = bus.BusKeys(config.experiment, config.run_id)
         self._security = security
@@ -772,6 +778,16 @@ class Agent:
                 return
             self._run_tick(tick)
 
+    def _use_batch_scheduling(self) -> None:
+        """Lockstep: this process's threads under ``SCHED_BATCH`` (a throughput job; see
+        :mod:`hilswarm.agents.scheduling`). A refusal only costs speed: logged, not fatal."""
+        try:
+            switched = use_batch_scheduling()
+        except OSError as exc:
+            logger.warning("%s: lockstep under the default CPU policy: %s", self.config.name, exc)
+            return
+        logger.debug("%s: %d threads under SCHED_BATCH (lockstep)", self.config.name, switched)
+
     def _handle_work(self, item: tuple[Any, ...]) -> None:
         kind = item[0]
         if kind == _W_SET:
@@ -791,6 +807,8 @@ class Agent:
         # ``armed.is_active`` costs ~0.9 µs to the id's 0.05 µs).
         if self.lifecycle.state_id == "armed":
             self._transition("start", "")
+            if self._own_process and self.engine.realtime is False:
+                self._use_batch_scheduling()
         k, t = tick.k, tick.t
         hint = self._tick_due_hint
         if hint is not None and tick.due == tick.due:  # self-clocked (not NaN)
@@ -1058,7 +1076,7 @@ def run_agent(
     config: AgentConfig, endpoints: Sequence[str], security: bus.SessionSecurity | None = None
 ) -> int:
     """Run one agent in this process until stopped; SIGINT/SIGTERM stop it cleanly."""
-    agent = Agent(config, endpoints, security=security)
+    agent = Agent(config, endpoints, security=security, own_process=True)
 
     def on_signal(signum: int, _frame: FrameType | None) -> None:
         agent.request_stop(f"signal {signal.Signals(signum).name}")

@@ -38,6 +38,11 @@ Contract (``k``: tick index; ``window``: the experiment's ``lockstep_window`` [t
   a neighbour the manager reports missing counts as no data (``None``). Lockstep waits until
   every other neighbour's ``y_{k-1}`` is in. Realtime after skipped ticks may use the newest
   older output of a neighbour.
+* **Wake.** :meth:`TickEngine.on_tick` and :meth:`TickEngine.on_neighbour` return ``True``
+  when the worker should look for a tick to run: an accepted tick message, or the last input
+  a released tick waits for (not each neighbour's: a worker woken by the first of two outputs
+  would find the tick still waiting and sleep again). Whatever the order of arrival, a tick
+  that becomes runnable always comes with such a ``True``.
 
 * **Self-clocked realtime** (the manager sends a schedule instead of tick messages, see
   :class:`~hilswarm.agents.bus.ScheduleMessage`). Tick ``j`` (``first <= j <= last``) is due at
@@ -447,7 +452,8 @@ class TickEngine:
         used by a self-clocked run to bound how far ahead it may be).
 
         Returns:
-            ``True`` when it was kept and the next tick may now be ready to run.
+            ``True`` when it was kept and brought in the last input the next released tick
+            waits for (so the worker is woken once per tick, not once per neighbour).
         """
         history = self.history[name]
         size = self._sizes.get(name)
@@ -485,7 +491,26 @@ class TickEngine:
             del history[oldest]
         if self.clocked:
             return False  # a self-clocked tick waits for its due time, not for inputs
-        return self.running and self.horizon > self.k and k >= self.k
+        return self.running and self.horizon > self.k and self._completes(name, k)
+
+    def _completes(self, name: str, k: int) -> bool:
+        """Ticks released by messages: is ``y_k`` of neighbour ``name`` the input the next
+        tick waits for, and every other neighbour's already in (or counted as no data)?
+
+        The next tick waits only for ``y_{k-1}`` of tick ``k`` (:meth:`take`): lockstep's next
+        tick after :attr:`k`, realtime's newest released one (after skipped ticks it uses older
+        outputs and waits for nothing, so it was ready when its tick message came).
+        """
+        if self.realtime:
+            needed, lost = self.horizon - 1, self._tick_missing
+        else:
+            needed, lost = self.k, self._lost
+        if k != needed:
+            return False
+        history = self.history
+        return all(
+            other == name or other in lost or needed in history[other] for other in self.neighbours
+        )
 
     # -- running ticks -------------------------------------------------------------------------
 

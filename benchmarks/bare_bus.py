@@ -15,7 +15,9 @@ bounds what the full runtime can reach here.
 
 Realtime: tick k is sent at ``T0 + k dt``; a tick is late when some answer is not in when the
 next one is due (as in the runtime). Lockstep: tick k+1 is sent from the callback of the last
-answer of tick k (one round trip per tick, a barrier: the slowest form of lockstep).
+answer of tick k (one round trip per tick, a barrier: the slowest form of lockstep). In
+lockstep the clients run under ``SCHED_BATCH``, as the runtime's lockstep agents do
+(:mod:`hilswarm.agents.scheduling`).
 
 Two leaner patterns bound what any design on this bus could reach, not just the runtime's:
 
@@ -45,6 +47,7 @@ import numpy as np
 import zenoh
 from cpu_sampler import CpuSampler
 from hilswarm.agents import bus, bus_callback
+from hilswarm.agents.scheduling import use_batch_scheduling
 
 _Y_VALUES = np.array([0.5, -0.25, 1.0])
 _REPORT = bus.encode_report(bus.AgentTiming(), np.zeros(2), np.zeros(2))
@@ -93,8 +96,11 @@ _START = struct.Struct("<dd")
 
 
 def client(index: int, n: int, endpoint: str, pattern: str) -> None:
-    """One client process; ``pattern``: ``tick``, ``clock`` or ``window`` (see the module doc)."""
+    """One client process; ``pattern``: ``tick`` (realtime), ``barrier`` (lockstep, answering
+    each tick as ``tick`` does), ``clock`` or ``window`` (see the module doc)."""
     keys = bus.BusKeys("bare")
+    if pattern in ("barrier", "window"):  # lockstep: batch work, as the runtime's agents
+        use_batch_scheduling()
     session = bus.open_session(bus.client_config([endpoint]))
     name = f"r{index}"
     publisher = session.declare_publisher(keys.y(name), **bus.TICK_PATH_QOS)
@@ -124,7 +130,7 @@ def client(index: int, n: int, endpoint: str, pattern: str) -> None:
 
     def on_tick(sample: zenoh.Sample) -> None:
         tick = bus.decode_tick(sample.payload.to_bytes())
-        if pattern == "tick":
+        if pattern in ("tick", "barrier"):
             answer(tick.k, tick.t)
             return
         with lock:
@@ -260,7 +266,7 @@ def run_bare(
             keys.all_alive, bus_callback.callback(on_alive), history=True
         ),
     ]
-    pattern = "clock" if self_clocked else "window" if window else "tick"
+    pattern = "clock" if self_clocked else "window" if window else "barrier" if lockstep else "tick"
     started = time.perf_counter()
     command = [sys.executable, os.path.abspath(__file__), "--client"]
     clients = [

@@ -59,6 +59,61 @@ def test_lockstep_steps_through_every_released_tick_once_inputs_are_in() -> None
     assert {n: v[0] for n, v in tick.neighbours.items()} == {"a": 0.0, "c": 0.0}
 
 
+def test_only_the_last_input_a_released_tick_waits_for_wakes_the_worker() -> None:
+    """One wake per tick, not one per neighbour: a worker woken by the first of two outputs
+    would find the tick still waiting and sleep again (a context switch per neighbour)."""
+    e = engine()
+    e.on_tick(3, 3 * DT, (), False, arrived=0.0)
+    e.take(gather=True)  # tick 0
+    assert not e.on_neighbour("c", 0, y(0))  # a's y_0 is still on its way
+    assert not e.on_neighbour("c", 1, y(1))  # for tick 2, which waits for tick 1 first
+    assert e.on_neighbour("a", 0, y(0))  # the last one tick 1 waits for
+    assert e.take(gather=True).k == 1
+    assert e.on_neighbour("a", 1, y(1))  # c's y_1 came early: this one completes tick 2
+    assert e.take(gather=True).k == 2
+    e.on_tick(4, 4 * DT, (0,), False, arrived=0.0)  # a lost: tick 3 waits for c alone
+    assert e.on_neighbour("c", 2, y(2))
+    realtime = engine()
+    realtime.on_tick(0, 0.0, (), True, arrived=0.0)
+    realtime.take(gather=True)
+    realtime.on_tick(1, DT, (), True, arrived=DT)
+    assert not realtime.on_neighbour("a", 0, y(0))
+    assert realtime.on_neighbour("c", 0, y(0))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    realtime=st.booleans(),
+    events=st.lists(
+        st.tuples(st.sampled_from(("tick", "a", "c", "lose")), st.integers(0, 12)),
+        max_size=80,
+    ),
+)
+def test_property_a_runnable_tick_always_comes_with_a_wake(
+    realtime: bool, events: list[tuple[str, int]]
+) -> None:
+    """Whatever order ticks and outputs arrive in: after an input that did not wake the
+    worker, the worker (asleep) has nothing to run; after one that did, it runs every tick
+    ready. So waking once per tick never leaves a tick waiting for a wake that never comes."""
+    e = engine()
+    released = -1
+    for kind, value in events:
+        if kind == "tick":
+            released += 2 if value % 5 == 4 else 1  # now and then a tick is skipped
+            woke = e.on_tick(released, released * DT, (), realtime, arrived=released * DT)
+        elif kind == "lose":  # the next tick reports agent a lost
+            released += 1
+            woke = e.on_tick(released, released * DT, (0,), realtime, arrived=released * DT)
+        else:
+            k = (e.k, e.horizon - 1, e.k + 1, e.k - 1)[value % 4]  # mostly the ones awaited
+            woke = e.on_neighbour(kind, max(0, k), y(value))
+        if woke:
+            while e.take(gather=True) is not None:
+                pass
+        else:
+            assert e.take(gather=True) is None, (kind, value, e.k, e.horizon)
+
+
 def test_lockstep_never_runs_more_than_its_window_ahead_whatever_arrives() -> None:
     e = engine(window=4)
     for k in (4, 5, 1_000_000, 2**62):  # forged: further than the window past tick -1

@@ -101,6 +101,15 @@ def agent_pids(pid: int) -> list[int]:
     return agents
 
 
+def thread_policies(pid: int) -> set[int]:
+    """The CPU scheduling policies (``os.SCHED_*``) of process ``pid``'s threads."""
+    policies: set[int] = set()
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            policies.add(os.sched_getscheduler(int(task.name)))
+    return policies
+
+
 def agent_name_of(pid: int) -> str:
     """The agent name of agent process ``pid``, from its command line or process title."""
     words = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").split()

@@ -26,6 +26,7 @@ from swarm_harness import (
     connect_spy,
     pid_alive,
     read_recording,
+    thread_policies,
     wait_for,
     write_toy_experiment,
 )
@@ -323,6 +324,8 @@ def test_estop_reaches_every_agent_within_one_tick(
     spies.append(spy)
     run.remember_agents(4)
     wait_for(lambda: spy.last_tick() >= 25, 60, "tick 25")
+    for pid in run.agent_pids:  # realtime keeps the default policy (agents/scheduling.py)
+        assert thread_policies(pid) == {os.SCHED_OTHER}, agent_name_of(pid)
     spy.control(bus.ControlCommand.ESTOP, "test e-stop")
     assert run.wait(20) == 3, run.output()  # every agent safe: degraded
     assert "degraded: e-stop at tick" in run.output(), run.output()
@@ -417,6 +420,9 @@ def test_lockstep_pause_holds_the_ticks_and_resume_goes_on(
     spy = connect_spy(run, "toy")
     spies.append(spy)
     wait_for(lambda: spy.last_tick() >= 100, 60, "tick 100")
+    # Lockstep is batch work: every agent thread under SCHED_BATCH (agents/scheduling.py).
+    for pid in run.remember_agents(4):
+        assert thread_policies(pid) == {os.SCHED_BATCH}, agent_name_of(pid)
     spy.control(bus.ControlCommand.PAUSE, "test pause")
     # The manager says it is paused; it sends no tick message after that. The ticks released
     # before the pause are answered (tick 0 to the last released one), then nothing moves.
