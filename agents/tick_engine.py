@@ -497,9 +497,10 @@ class TickEngine:
         """Ticks released by messages: is ``y_k`` of neighbour ``name`` the input the next
         tick waits for, and every other neighbour's already in (or counted as no data)?
 
-        The next tick waits only for ``y_{k-1}`` of tick ``k`` (:meth:`take`): lockstep's next
-        tick after :attr:`k`, realtime's newest released one (after skipped ticks it uses older
-        outputs and waits for nothing, so it was ready when its tick message came).
+        Tick ``j`` waits for the neighbours' ``y_{j-1}`` alone (:meth:`take`); the next one is
+        lockstep's ``self.k + 1`` and realtime's newest released, ``self.horizon`` (after
+        skipped ticks that one takes older outputs and waits for nothing: it was ready when
+        its tick message came).
         """
         if self.realtime:
             needed, lost = self.horizon - 1, self._tick_missing
