@@ -49,11 +49,12 @@ Per-tick vectors use a fixed little-endian layout (no JSON on the hot path): ``k
 
 Configurations: the orchestrator opens a *router* session listening on loopback (a free port
 it binds itself, read back with :func:`bound_endpoints`); agents are *clients* of it (a peer
-mesh does not scale past a few dozen processes on two cores, and a peer hub does not relay
-between peers). :func:`session_config` builds every configuration, in one place: multicast
-scouting and gossip are off; the link lease is short (1 s) so that a hung process is dropped
-quickly; :class:`SessionSecurity` adds Zenoh's user/password authentication, TLS and the
-router's access control (see docs/security.md).
+mesh does not scale past a few dozen processes on two cores, a peer hub does not relay between
+peers, and even peers linked to their graph neighbours only were slower than clients of the
+router: docs/running.md, "Levers"). :func:`session_config` builds every configuration, in one
+place: multicast scouting and gossip are off; the link lease is short (1 s) so that a hung
+process is dropped quickly; :class:`SessionSecurity` adds Zenoh's user/password
+authentication, TLS and the router's access control (see docs/security.md).
 
 :data:`LEAN_RUNTIME` runs Zenoh's receiving side on one application worker thread and its
 transmitting side on one more (the ``ZENOH_RUNTIME`` environment variable): a client then runs
