@@ -66,6 +66,7 @@ class BareResult:
     wall_s: float
     startup_s: float = float("nan")  # first client started to every client alive [s]
     client_cpu_s: float = float("nan")  # one client process's CPU per tick [s] (mean)
+    cpu_busy: float = float("nan")  # the machine's CPUs busy during the ticks [0, 1]
 
     @property
     def late_fraction(self) -> float:
@@ -305,6 +306,7 @@ def run_bare(
         wall = time.perf_counter() - start
         sampler.stop()
         client_cpu = sampler.total_s() / n / n_ticks
+        cpu_busy = sampler.machine_busy()
     finally:
         for process in clients:
             if process.stdin is not None:
@@ -324,7 +326,7 @@ def run_bare(
         late = n_ticks - times.size
     return BareResult(
         n, rate_hz, "lockstep" if lockstep else "realtime", n_ticks, late, times, wall, startup,
-        client_cpu,
+        client_cpu, cpu_busy,
     )  # fmt: skip
 
 

@@ -15,13 +15,21 @@ child keeps each ``stat`` file open and re-reads it with ``pread``.
     ...                                  # the run
     sampler.stop()                       # when its ticks are done
     sampler.total_s()                    # CPU of every process in between [s]
+    sampler.machine_busy()               # how busy the machine's CPUs were in between [0, 1]
+
+The child also reads the machine's own CPU times (``/proc/stat``) at its first and last
+reading: :meth:`CpuSampler.machine_busy` is the fraction of all the machine's CPU time that
+was busy in between, whoever's work it was (user, nice, system, interrupts and, in a virtual
+machine, time stolen by the host). Near 1, the run was bound by the CPUs; a figure missed
+then is short of CPU, not waiting on something else.
 
 ``python benchmarks/cpu_sampler.py --short`` checks it on processes that burn a known amount
 of CPU (measured against what they report, and what the sampling costs). Run with pids it is
 that child (``--period S PID...``): it prints ``ready`` after the
 first readings, reads every ``S`` seconds, and when its standard input closes prints one
-JSON line ``{"first": [...], "last": [...], "own": S}`` (CPU [s] per pid, in the order given,
-``null`` for a process already gone at the start; its own CPU [s]) and exits.
+JSON line ``{"first": [...], "last": [...], "own": S, "machine": [...]}`` (CPU [s] per pid,
+in the order given, ``null`` for a process already gone at the start; its own CPU [s]; the
+machine's busy and total CPU time [s] at the first and at the last reading) and exits.
 """
 
 from __future__ import annotations
@@ -46,6 +54,27 @@ def cpu_from_stat(text: bytes) -> float:
     return (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS
 
 
+def machine_cpu_s(text: bytes) -> tuple[float, float]:
+    """``(busy, total)`` CPU time [s] of all the machine's CPUs from ``/proc/stat``'s contents.
+
+    Busy is everything but idle and I/O wait: user, nice, system, hard and soft interrupts
+    and steal (guest time is inside user already, so it is not added again).
+    """
+    line = text.split(b"\n", 1)[0].split()
+    if not line or line[0] != b"cpu":
+        raise ValueError(f"not the contents of /proc/stat: {text[:40]!r}")
+    user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in line[1:9])
+    busy = user + nice + system + irq + softirq + steal
+    return busy / _CLOCK_TICKS, (busy + idle + iowait) / _CLOCK_TICKS
+
+
+def busy_fraction(first: tuple[float, float], last: tuple[float, float]) -> float:
+    """The busy share of the CPU time between two :func:`machine_cpu_s` readings (NaN if
+    none passed)."""
+    total = last[1] - first[1]
+    return (last[0] - first[0]) / total if total > 0 else float("nan")
+
+
 def process_cpu_s(pid: int) -> float | None:
     """User + system CPU of process ``pid`` so far [s]; ``None`` when it is gone."""
     try:
@@ -68,6 +97,8 @@ class CpuSampler:
         self._first: list[float | None] = [None] * len(self._pids)
         self._last: list[float | None] = [None] * len(self._pids)
         self.own_cpu_s = float("nan")  #: the sampling process's own CPU [s], after stop()
+        # the machine's busy and total CPU time [s] at the first and at the last reading
+        self._machine: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)
 
     def start(self) -> CpuSampler:
         """Take the first readings, then keep sampling in the child (returns itself)."""
@@ -93,6 +124,7 @@ class CpuSampler:
             readings = json.loads(line)
             self._first, self._last = readings["first"], readings["last"]
             self.own_cpu_s = float(readings["own"])
+            self._machine = tuple(float(x) for x in readings["machine"])
         except (ValueError, KeyError, TypeError) as exc:
             raise RuntimeError(f"the CPU sampling process answered {line!r}") from exc
         finally:
@@ -109,6 +141,12 @@ class CpuSampler:
             for first, last in zip(self._first, self._last, strict=True)
             if first is not None and last is not None
         )
+
+    def machine_busy(self) -> float:
+        """The fraction [0, 1] of the machine's CPU time that was busy between the first and
+        the last reading (anyone's work; NaN before :meth:`stop`)."""
+        busy0, total0, busy1, total1 = self._machine
+        return busy_fraction((busy0, total0), (busy1, total1))
 
 
 def _readline(process: subprocess.Popen[str], timeout_s: float) -> str:
@@ -139,7 +177,9 @@ def _sample(pids: list[int], period_s: float) -> None:
                 os.close(fd)
                 files[i] = None
 
+    stat = os.open("/proc/stat", os.O_RDONLY)
     first: list[float | None] = [None] * len(pids)
+    machine_first = machine_cpu_s(os.pread(stat, 4096, 0))
     read(first)
     last = list(first)
     print("ready", flush=True)
@@ -155,7 +195,11 @@ def _sample(pids: list[int], period_s: float) -> None:
             read(last)
             next_read += period_s
     read(last)
-    print(json.dumps({"first": first, "last": last, "own": time.process_time()}), flush=True)
+    machine_last = machine_cpu_s(os.pread(stat, 4096, 0))
+    os.close(stat)
+    own = time.process_time()
+    machine = [*machine_first, *machine_last]
+    print(json.dumps({"first": first, "last": last, "own": own, "machine": machine}), flush=True)
 
 
 def check(n: int, burn_s: float) -> str:
@@ -187,7 +231,8 @@ def check(n: int, burn_s: float) -> str:
         f"cpu sampler: {n} processes, measured {measured:.2f} s of CPU against {reported:.2f} s "
         f"they report (ratio {measured / reported:.2f}; each exit loses at most one period and "
         f"the start-up before the first reading); the sampling process used "
-        f"{1e3 * sampling:.0f} ms of CPU in {elapsed:.1f} s, its start-up included; "
+        f"{1e3 * sampling:.0f} ms of CPU in {elapsed:.1f} s, its start-up included; the "
+        f"machine's {os.cpu_count()} CPUs {100 * sampler.machine_busy():.0f} % busy meanwhile; "
         f"load {load:.2f} (1 min)"
     )
 

@@ -32,7 +32,8 @@ runs; its keys are stable (docs/running.md, "Benchmark JSON lines"):
 
     {"kind": "bare"|"runtime", "mode": "realtime"|"lockstep", "agents", "rate_hz", "p50_ms",
      "p99_ms", "late_fraction", "speed", "startup_s", "load_1min", "vehicle",
-     "manager_cpu_ms", "agent_cpu_ms", "recorder_cpu_ms", "realtime_clock", "last_late_tick"}
+     "manager_cpu_ms", "agent_cpu_ms", "recorder_cpu_ms", "realtime_clock", "last_late_tick",
+     "cpu_busy"}
 
 ``p99_ms`` is ``null`` when late ticks make it infinite; ``speed`` is ``null`` in realtime;
 ``late_fraction`` is ``null`` in lockstep; CPU figures are per tick (``agent_cpu_ms``: one
@@ -44,7 +45,10 @@ bus); ``load_1min`` is the 1-minute load average when the configuration began (t
 benchmark's own processes raise it; ``--settle-load 1`` waits for a quiet machine before
 each run); ``last_late_tick`` is the runtime's last late tick (``null``: none late; always
 ``null`` for the bare bus): under ``START_TICKS`` every late tick was a start-up transient,
-and the verdict line says so.
+and the verdict line says so; ``cpu_busy`` is the fraction [0, 1] of the machine's CPU time
+that was busy while the configuration ticked, anyone's work (``cpu_sampler.py``; the
+``busy%`` column, and the verdict lines beside their baseline's): near 1, the run was short
+of CPU.
 """
 
 from __future__ import annotations
@@ -128,6 +132,7 @@ class Result:
     startup_s: float  # fork server started (bus opening beside it) to every agent armed [s]
     load_1min: float  # the machine's 1-minute load average when the configuration began
     realtime_clock: str = "shared"  # realtime: "shared" (self-clocked) or "manager" (ticks)
+    cpu_busy: float = math.nan  # the machine's CPUs busy during the ticks [0, 1], anyone's work
 
     @property
     def label(self) -> str:
@@ -165,7 +170,7 @@ class Result:
             f"{self.vehicle:9} {self.label:9} {self.n:>3} {self.rate_hz:>5g} {self.total:>6} "
             f"{p50:>7.2f} {p99:>7.2f} {late:>6} {self.manager_cpu_s * 1e3:>8.3f} "
             f"{self.agent_cpu_s * 1e3:>8.3f} {self.recorder_cpu_s * 1e3:>8.3f} {speed:>7} "
-            f"{self.startup_s:>6.2f} {self.load_1min:>5.2f}"
+            f"{self.startup_s:>6.2f} {self.load_1min:>5.2f} {_percent(self.cpu_busy):>5}"
         )
         if self.summary.stop_reason != "completed":  # e.g. an agent starved past its lease
             row += f"  stopped early: {self.summary.stop_reason}"
@@ -175,8 +180,13 @@ class Result:
 HEADER = (
     f"{'vehicle':9} {'mode':9} {'N':>3} {'rate':>5} {'ticks':>6} {'p50 ms':>7} {'p99 ms':>7} "
     f"{'late%':>6} {'mgr ms':>8} {'agt ms':>8} {'rec ms':>8} {'speed':>7} {'up s':>6} "
-    f"{'load':>5}"
+    f"{'load':>5} {'busy%':>5}"
 )
+
+
+def _percent(fraction: float) -> str:
+    """A fraction as a whole percentage for the table (``-`` when unknown)."""
+    return f"{100 * fraction:.0f}" if math.isfinite(fraction) else "-"
 
 
 def _finite(value: float, digits: int = 3) -> float | None:
@@ -202,6 +212,7 @@ def json_line(
     recorder_cpu_ms: float = math.nan,
     realtime_clock: str | None = None,
     last_late_tick: int | None = None,
+    cpu_busy: float = math.nan,
 ) -> str:
     """The stable JSON line of one configuration (keys documented in the module doc)."""
     lockstep = mode == "lockstep"
@@ -223,6 +234,7 @@ def json_line(
             "recorder_cpu_ms": _finite(recorder_cpu_ms, 4),
             "realtime_clock": realtime_clock,
             "last_late_tick": last_late_tick,
+            "cpu_busy": _finite(cpu_busy),
         }
     )
 
@@ -237,7 +249,7 @@ def result_json(result: Result) -> str:
         vehicle=result.vehicle, manager_cpu_ms=result.manager_cpu_s * 1e3,
         agent_cpu_ms=result.agent_cpu_s * 1e3, recorder_cpu_ms=result.recorder_cpu_s * 1e3,
         realtime_clock=result.realtime_clock if result.mode == "realtime" else None,
-        last_late_tick=result.summary.last_late_tick,
+        last_late_tick=result.summary.last_late_tick, cpu_busy=result.cpu_busy,
     )  # fmt: skip
 
 
@@ -249,7 +261,7 @@ def bare_json(bare: BareResult, load_1min: float, realtime_clock: str | None = N
         kind="bare", mode=bare.mode, agents=bare.n, rate_hz=bare.rate_hz, p50_ms=p50,
         p99_ms=p99, late_fraction=bare.late_fraction, speed=bare.speed,
         startup_s=bare.startup_s, load_1min=load_1min, agent_cpu_ms=bare.client_cpu_s * 1e3,
-        realtime_clock=realtime_clock,
+        realtime_clock=realtime_clock, cpu_busy=bare.cpu_busy,
     )  # fmt: skip
 
 
@@ -338,7 +350,7 @@ def run_once(
     ticks = max(1, summary.ticks + summary.late_ticks)
     return Result(
         vehicle, mode, n, rate_hz, summary, cpu / ticks, max(0.0, recorder_cpu) / ticks,
-        agents.total_s() / ticks / n, startup, load, realtime_clock,
+        agents.total_s() / ticks / n, startup, load, realtime_clock, agents.machine_busy(),
     )  # fmt: skip
 
 
@@ -351,7 +363,8 @@ def baseline_row(bare: BareResult, load_1min: float, label: str = "") -> str:
     return (
         f"{'bare bus':9} {label or bare.mode:9} {bare.n:>3} {bare.rate_hz:>5g} {bare.ticks:>6} "
         f"{p50:>7.2f} {p99:>7.2f} {late:>6} {'-':>8} {bare.client_cpu_s * 1e3:>8.3f} "
-        f"{'-':>8} {speed:>7} {bare.startup_s:>6.2f} {load_1min:>5.2f}"
+        f"{'-':>8} {speed:>7} {bare.startup_s:>6.2f} {load_1min:>5.2f} "
+        f"{_percent(bare.cpu_busy):>5}"
     )
 
 
@@ -381,6 +394,15 @@ LOCKSTEP_SPEED, LOCKSTEP_FRACTION = 10.0, 0.75
 START_TICKS = 10
 #: 32 agents ready within this [s].
 STARTUP_S = 2.0
+
+
+def _busy_note(busy: float, bare_busy: float) -> str:
+    """``, CPUs 93 % busy vs bare 48 %``: how near the run was to the machine's CPU limit
+    ("" when it was not measured)."""
+    if not math.isfinite(busy):
+        return ""
+    note = f", CPUs {100 * busy:.0f} % busy"
+    return note + (f" vs bare {100 * bare_busy:.0f} %" if math.isfinite(bare_busy) else "")
 
 
 def verdicts(
@@ -430,7 +452,7 @@ def verdicts(
                 f"late {100 * result.late_fraction:.2f} % vs bare {100 * bare.late_fraction:.2f}"
                 f" %, p99 {p99:.2f} ms vs bare {bare_p99:.2f} ms "
                 f"(ratio {p99 / bare_p99 if bare_p99 else math.inf:.2f}), "
-                f"load {result.load_1min:.2f}"
+                f"load {result.load_1min:.2f}{_busy_note(result.cpu_busy, bare.cpu_busy)}"
             )
             last_late = result.summary.last_late_tick
             if last_late is not None and last_late < START_TICKS:
@@ -453,7 +475,7 @@ def verdicts(
             lines.append(
                 f"{name} and >= {100 * LOCKSTEP_FRACTION:.0f} % of the bare bus: {verdict} "
                 f"({speed:.1f}x vs bare {bare.speed:.1f}x, ratio {ratio:.2f}, "
-                f"load {result.load_1min:.2f})"
+                f"load {result.load_1min:.2f}{_busy_note(result.cpu_busy, bare.cpu_busy)})"
             )
         sized = [r for r in results if r.vehicle == vehicle and r.n >= 32]
         name = f"[{vehicle}] 32 agents ready < {STARTUP_S:g} s"
@@ -530,7 +552,8 @@ def main(argv: list[str] | None = None) -> int:
         "mgr/agt/rec ms: CPU per tick of the orchestrator process (Zenoh router included), of "
         "one agent (mean) and of the recorder process;\nup s: agents started (the fork server "
         "and the bus, as hilswarm run) to all armed; "
-        "load: 1-minute load average when the run began",
+        "load: 1-minute load average when the run began; busy%: the machine's CPUs busy while "
+        "it ticked (anyone's work)",
         flush=True,
     )
     print(HEADER, flush=True)

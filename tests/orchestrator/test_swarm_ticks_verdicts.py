@@ -78,3 +78,20 @@ def test_lockstep_start_up_and_cpu_lines(swarm_ticks: ModuleType) -> None:
     assert "(5.0x vs bare 12.0x, ratio 0.42, load 0.50)" in text
     assert "32 agents ready < 2 s: MET (1.20 s)" in text
     assert "CPU per tick, lockstep 8 @ 100 Hz: manager 0.700 ms" in text
+
+
+def test_the_machine_s_busy_cpus_beside_the_baseline_s(swarm_ticks: ModuleType) -> None:
+    """A run's busy CPUs go into its row, its JSON line and its verdict, beside its pair's."""
+    result = runtime(swarm_ticks, [5])
+    assert json.loads(swarm_ticks.result_json(result))["cpu_busy"] is None  # not measured
+    assert "busy" not in verdict_32(swarm_ticks, result)
+    result.cpu_busy = 0.93412
+    paired = bare(swarm_ticks)
+    paired.cpu_busy = 0.48
+    assert json.loads(swarm_ticks.result_json(result))["cpu_busy"] == 0.934
+    assert json.loads(swarm_ticks.bare_json(paired, 0.5))["cpu_busy"] == 0.48
+    assert result.row().split()[-1] == "93"
+    assert swarm_ticks.baseline_row(paired, 0.5).split()[-1] == "48"
+    lines = swarm_ticks.verdicts([result], {("realtime", 32, 100.0): paired})
+    line = next(line for line in lines if "32 agents at 100 Hz" in line)
+    assert "load 0.50, CPUs 93 % busy vs bare 48 %" in line
