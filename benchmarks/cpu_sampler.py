@@ -43,6 +43,8 @@ import sys
 import time
 from pathlib import Path
 
+from hilswarm.orchestrator.machine_cpu import busy_fraction, parse_cpu_times
+
 _CLOCK_TICKS = os.sysconf("SC_CLK_TCK")  # the unit of utime and stime [1/s]
 _START_TIMEOUT_S = 30.0
 _MAX_RUN_S = 6 * 3600.0  # the child gives up after this long, whatever its parent does
@@ -52,27 +54,6 @@ def cpu_from_stat(text: bytes) -> float:
     """User + system CPU [s] from the contents of a ``/proc/<pid>/stat`` file."""
     fields = text.rsplit(b")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS
-
-
-def machine_cpu_s(text: bytes) -> tuple[float, float]:
-    """``(busy, total)`` CPU time [s] of all the machine's CPUs from ``/proc/stat``'s contents.
-
-    Busy is everything but idle and I/O wait: user, nice, system, hard and soft interrupts
-    and steal (guest time is inside user already, so it is not added again).
-    """
-    line = text.split(b"\n", 1)[0].split()
-    if not line or line[0] != b"cpu":
-        raise ValueError(f"not the contents of /proc/stat: {text[:40]!r}")
-    user, nice, system, idle, iowait, irq, softirq, steal = (int(x) for x in line[1:9])
-    busy = user + nice + system + irq + softirq + steal
-    return busy / _CLOCK_TICKS, (busy + idle + iowait) / _CLOCK_TICKS
-
-
-def busy_fraction(first: tuple[float, float], last: tuple[float, float]) -> float:
-    """The busy share of the CPU time between two :func:`machine_cpu_s` readings (NaN if
-    none passed)."""
-    total = last[1] - first[1]
-    return (last[0] - first[0]) / total if total > 0 else float("nan")
 
 
 def process_cpu_s(pid: int) -> float | None:
@@ -179,7 +160,7 @@ def _sample(pids: list[int], period_s: float) -> None:
 
     stat = os.open("/proc/stat", os.O_RDONLY)
     first: list[float | None] = [None] * len(pids)
-    machine_first = machine_cpu_s(os.pread(stat, 4096, 0))
+    machine_first = parse_cpu_times(os.pread(stat, 4096, 0))
     read(first)
     last = list(first)
     print("ready", flush=True)
@@ -195,7 +176,7 @@ def _sample(pids: list[int], period_s: float) -> None:
             read(last)
             next_read += period_s
     read(last)
-    machine_last = machine_cpu_s(os.pread(stat, 4096, 0))
+    machine_last = parse_cpu_times(os.pread(stat, 4096, 0))
     os.close(stat)
     own = time.process_time()
     machine = [*machine_first, *machine_last]

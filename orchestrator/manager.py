@@ -57,6 +57,7 @@ from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.agents.tick_engine import is_warmup, start_lead
 from hilswarm.orchestrator.experiment import Experiment, self_clocked
 from hilswarm.orchestrator.frame_schedule import FRAME_ACQUIRE_WAIT_S, FrameSchedule
+from hilswarm.orchestrator.machine_cpu import read_cpu_times
 from hilswarm.orchestrator.record_feed import RecordFeed
 from hilswarm.orchestrator.record_stream import ORCHESTRATOR, RecordSink
 from hilswarm.orchestrator.recorder import Recorder
@@ -246,6 +247,7 @@ class InstanceManager:
             experiment.n_ticks,
             experiment.rate_hz,
             say=display.log if display is not None else None,
+            cpu_times=read_cpu_times if self._realtime else None,
         )
         self._clock_origin = clock()
         # Realtime due times, in step with the mocap frames with ``[mocap] tick_lock``.

@@ -3,9 +3,10 @@
 :class:`RunTally` keeps the instance manager's
 :class:`~hilswarm.orchestrator.run_summary.RunSummary` up to date from two sources: each closed
 tick's account (on the ticking thread: on time or late, per agent; its completion time; the
-overload warning when many ticks in a row are late) and each agent's status message (on a bus
-thread, under the manager's lock: the first safe entry, degradations, the counters the agent
-reports). The summary then gives the run's outcome (:mod:`hilswarm.orchestrator.outcome`).
+overload warning when many ticks in a row are late, with how busy the machine's CPUs were) and
+each agent's status message (on a bus thread, under the manager's lock: the first safe entry,
+degradations, the counters the agent reports). The summary then gives the run's outcome
+(:mod:`hilswarm.orchestrator.outcome`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from hilswarm.orchestrator.machine_cpu import busy_fraction
 from hilswarm.orchestrator.outcome import COUNTER_NAMES
 from hilswarm.orchestrator.run_summary import AgentEvent, RunSummary
 
@@ -25,6 +27,25 @@ logger = logging.getLogger(__name__)
 OVERLOAD_BLOCK_TICKS = 100
 #: Realtime: the overload warning is given when more than this fraction of a block was late.
 OVERLOAD_LATE_FRACTION = 0.1
+#: From this busy share of the machine's CPUs over a late block, the warning blames the CPUs;
+#: below it, a slow agent or link (the CPUs had time to spare).
+CPU_FULL_FRACTION = 0.75
+
+#: Reads the machine's ``(busy, total)`` CPU time [s] (``None``: not available).
+CpuTimes = Callable[[], tuple[float, float] | None]
+
+
+def _cause(first: tuple[float, float] | None, last: tuple[float, float] | None) -> str:
+    """The likely cause of a late block, from the CPUs' busy share over it (if known)."""
+    busy = busy_fraction(first, last) if first is not None and last is not None else math.nan
+    if math.isnan(busy):
+        return "too many agents for the CPU cores, or slow links"
+    if busy >= CPU_FULL_FRACTION:
+        return f"the CPUs were {100 * busy:.0f} % busy over those ticks: too many agents for them"
+    return (
+        f"the CPUs were only {100 * busy:.0f} % busy over those ticks: a slow agent, controller "
+        "or link, not the number of cores"
+    )
 
 
 def counts(value: Any) -> int | dict[str, int] | None:
@@ -50,6 +71,10 @@ class RunTally:
         rate_hz: the tick rate [Hz], for the overload warning's text.
         say: where the overload warning also goes (the status display's log; ``None``: only
             the log).
+        cpu_times: reads the machine's busy and total CPU time
+            (:func:`~hilswarm.orchestrator.machine_cpu.read_cpu_times`), once per block of
+            :data:`OVERLOAD_BLOCK_TICKS` ticks, so that the warning can say how busy the CPUs
+            were over the late block (``None``: it does not say).
     """
 
     def __init__(
@@ -60,6 +85,7 @@ class RunTally:
         rate_hz: float,
         *,
         say: Callable[[str], None] | None = None,
+        cpu_times: CpuTimes | None = None,
     ) -> None:
         self.summary = summary
         self.names = tuple(names)
@@ -69,6 +95,9 @@ class RunTally:
         self.completion = np.full(max(n_ticks, 1), np.nan)
         self._late_in_block = 0
         self._overload_reported = False
+        self._cpu_times = cpu_times
+        #: The machine's CPU times when the current block began (read at its first tick).
+        self._block_cpu: tuple[float, float] | None = None
 
     def completed(self, k: int, completion_s: float) -> None:
         """Tick ``k`` was closed ``completion_s`` after its scheduled time [s] (NaN: not all
@@ -96,16 +125,22 @@ class RunTally:
 
     def _watch_overload(self, k: int, late: bool) -> None:
         """Say once when many recent ticks were late: the machine may not keep up."""
+        if self._overload_reported:
+            return
+        if k % OVERLOAD_BLOCK_TICKS == 0 and self._cpu_times is not None:
+            self._block_cpu = self._cpu_times()
         self._late_in_block += late
-        if (k + 1) % OVERLOAD_BLOCK_TICKS or self._overload_reported:
+        if (k + 1) % OVERLOAD_BLOCK_TICKS:
             return
         late_count, self._late_in_block = self._late_in_block, 0
+        first = self._block_cpu
+        last = self._cpu_times() if first is not None and self._cpu_times is not None else None
         if late_count > OVERLOAD_LATE_FRACTION * OVERLOAD_BLOCK_TICKS:
             self._overload_reported = True
             message = (
                 f"{late_count} of ticks {k + 1 - OVERLOAD_BLOCK_TICKS}..{k} were late: the agents "
-                f"do not keep up with {self.rate_hz:g} Hz here (too many agents for the CPU "
-                "cores, or slow links); see docs/running.md, Performance"
+                f"do not keep up with {self.rate_hz:g} Hz here ({_cause(first, last)})"
+                "; see docs/running.md, Performance"
             )
             logger.warning("%s", message)
             if self._say is not None:

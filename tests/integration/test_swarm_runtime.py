@@ -404,6 +404,7 @@ def test_realtime_overload_is_reported_while_running(
     assert run.wait(120) == 3, run.output()  # late ticks above max_late_fraction
     output = run.output()
     assert "do not keep up with 50 Hz" in output, output
+    assert "% busy over those ticks" in output, output  # the CPUs' share, to tell the cause
     assert "degraded: " in output and "ticks late" in output, output
     assert "late answers: " in output and "b=" in output, output
     recording = read_recording(run.out)

@@ -77,3 +77,28 @@ def test_counts_reads_a_count_or_counts_by_key() -> None:
     assert counts(True) is None
     assert counts({"x": 1, "y": "2", 5: 4}) == {"x": 1, "5": 4}
     assert counts("3") is None
+
+
+def overloaded(busy_per_block: float | None) -> str:
+    """The overload warning of a block of late ticks on a machine whose CPUs were
+    ``busy_per_block`` busy over it (``None``: the times are not available)."""
+    readings = iter([(0.0, 0.0), (0.0 + (busy_per_block or 0.0) * 2.0, 2.0)])
+    summary = RunSummary(experiment="x", mode="realtime", planned_ticks=200, dt_s=0.01)
+    summary.late = dict.fromkeys(NAMES, 0)
+    said: list[str] = []
+    times = (lambda: next(readings)) if busy_per_block is not None else (lambda: None)
+    t = RunTally(summary, NAMES, 200, 100.0, say=said.append, cpu_times=times)
+    for k in range(OVERLOAD_BLOCK_TICKS):
+        t.count(k, [1])
+    assert len(said) == 1
+    return said[0]
+
+
+def test_the_overload_warning_says_whether_the_cpus_were_full() -> None:
+    full = overloaded(0.96)
+    assert "the CPUs were 96 % busy over those ticks: too many agents for them" in full
+    idle = overloaded(0.2)
+    assert "the CPUs were only 20 % busy over those ticks: a slow agent, controller or link" in idle
+    unknown = overloaded(None)
+    assert "(too many agents for the CPU cores, or slow links)" in unknown
+    assert "see docs/running.md, Performance" in unknown
