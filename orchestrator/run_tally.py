@@ -72,9 +72,9 @@ class RunTally:
         say: where the overload warning also goes (the status display's log; ``None``: only
             the log).
         cpu_times: reads the machine's busy and total CPU time
-            (:func:`~hilswarm.orchestrator.machine_cpu.read_cpu_times`), once per block of
-            :data:`OVERLOAD_BLOCK_TICKS` ticks, so that the warning can say how busy the CPUs
-            were over the late block (``None``: it does not say).
+            (:func:`~hilswarm.orchestrator.machine_cpu.read_cpu_times`), at the first and the
+            last tick of each block of :data:`OVERLOAD_BLOCK_TICKS` ticks, so that the warning
+            can say how busy the CPUs were over the late block (``None``: it does not say).
     """
 
     def __init__(
