@@ -43,8 +43,8 @@ def _cause(first: tuple[float, float] | None, last: tuple[float, float] | None) 
     if busy >= CPU_FULL_FRACTION:
         return f"the CPUs were {100 * busy:.0f} % busy over those ticks: too many agents for them"
     return (
-        f"the CPUs were only {100 * busy:.0f} % busy over those ticks: a slow agent, controller "
-        "or link, not the number of cores"
+        f"the CPUs were only {100 * busy:.0f} % busy over those ticks: more likely a slow "
+        "agent, controller or link than too few cores"
     )
 
 

@@ -98,7 +98,7 @@ def test_the_overload_warning_says_whether_the_cpus_were_full() -> None:
     full = overloaded(0.96)
     assert "the CPUs were 96 % busy over those ticks: too many agents for them" in full
     idle = overloaded(0.2)
-    assert "the CPUs were only 20 % busy over those ticks: a slow agent, controller or link" in idle
+    assert "the CPUs were only 20 % busy over those ticks: more likely a slow agent" in idle
     unknown = overloaded(None)
     assert "(too many agents for the CPU cores, or slow links)" in unknown
     assert "see docs/running.md, Performance" in unknown
