@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -40,3 +42,15 @@ def firmware_built() -> Path:
     )
     assert result.returncode == 0, f"make -C firmware all failed:\n{result.stderr[-3000:]}"
     return root
+
+
+@pytest.fixture(scope="module")
+def benchmarks_on_path() -> Iterator[Path]:
+    """The benchmarks folder on ``sys.path`` for one test module, so that its scripts import
+    as modules (``import swarm_ticks``)."""
+    folder = Path(__file__).resolve().parents[1] / "benchmarks"
+    sys.path.insert(0, str(folder))
+    try:
+        yield folder
+    finally:
+        sys.path.remove(str(folder))

@@ -4,27 +4,19 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 @pytest.fixture(scope="module")
-def cpu_sampler() -> Iterator[ModuleType]:
+def cpu_sampler(benchmarks_on_path: Path) -> ModuleType:
     """The sampler module of the benchmarks."""
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        import cpu_sampler
+    import cpu_sampler
 
-        yield cpu_sampler
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    return cpu_sampler
 
 
 def test_a_sampler_reports_the_machine_busy_while_a_process_burns(

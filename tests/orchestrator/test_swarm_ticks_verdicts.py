@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -13,19 +11,13 @@ import numpy as np
 import pytest
 from hilswarm.orchestrator.run_summary import RunSummary
 
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-
 
 @pytest.fixture(scope="module")
-def swarm_ticks() -> Iterator[ModuleType]:
+def swarm_ticks(benchmarks_on_path: Path) -> ModuleType:
     """The benchmark script as a module."""
-    sys.path.insert(0, str(BENCHMARKS))
-    try:
-        import swarm_ticks
+    import swarm_ticks
 
-        yield swarm_ticks
-    finally:
-        sys.path.remove(str(BENCHMARKS))
+    return swarm_ticks
 
 
 def runtime(swarm_ticks: ModuleType, late_ks: list[int], completion_s: float = 0.005) -> Any:
