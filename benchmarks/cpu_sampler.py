@@ -17,11 +17,11 @@ child keeps each ``stat`` file open and re-reads it with ``pread``.
     sampler.total_s()                    # CPU of every process in between [s]
     sampler.machine_busy()               # how busy the machine's CPUs were in between [0, 1]
 
-The child also reads the machine's own CPU times (``/proc/stat``) at its first and last
-reading: :meth:`CpuSampler.machine_busy` is the fraction of all the machine's CPU time that
-was busy in between, whoever's work it was (user, nice, system, interrupts and, in a virtual
-machine, time stolen by the host). Near 1, the run was bound by the CPUs; a figure missed
-then is short of CPU, not waiting on something else.
+The child also reads the machine's own CPU times (``/proc/stat`` and ``/proc/uptime``,
+``hilswarm.orchestrator.machine_cpu``) at its first and last reading:
+:meth:`CpuSampler.machine_busy` is the fraction of all the machine's CPU time that was busy in
+between, whoever's work it was (all but idle and I/O wait). Near 1, the run was bound by the
+CPUs; a figure missed then is short of CPU, not waiting on something else.
 
 ``python benchmarks/cpu_sampler.py --short`` checks it on processes that burn a known amount
 of CPU (measured against what they report, and what the sampling costs). Run with pids it is
@@ -159,8 +159,13 @@ def _sample(pids: list[int], period_s: float) -> None:
                 files[i] = None
 
     stat = os.open("/proc/stat", os.O_RDONLY)
+    uptime = os.open("/proc/uptime", os.O_RDONLY)
+
+    def machine() -> tuple[float, float]:
+        return parse_cpu_times(os.pread(stat, 1 << 18, 0), os.pread(uptime, 128, 0))
+
     first: list[float | None] = [None] * len(pids)
-    machine_first = parse_cpu_times(os.pread(stat, 4096, 0))
+    machine_first = machine()
     read(first)
     last = list(first)
     print("ready", flush=True)
@@ -176,8 +181,9 @@ def _sample(pids: list[int], period_s: float) -> None:
             read(last)
             next_read += period_s
     read(last)
-    machine_last = parse_cpu_times(os.pread(stat, 4096, 0))
+    machine_last = machine()
     os.close(stat)
+    os.close(uptime)
     own = time.process_time()
     machine = [*machine_first, *machine_last]
     print(json.dumps({"first": first, "last": last, "own": own, "machine": machine}), flush=True)

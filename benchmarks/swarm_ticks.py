@@ -38,17 +38,18 @@ runs; its keys are stable (docs/running.md, "Benchmark JSON lines"):
 ``p99_ms`` is ``null`` when late ticks make it infinite; ``speed`` is ``null`` in realtime;
 ``late_fraction`` is ``null`` in lockstep; CPU figures are per tick (``agent_cpu_ms``: one
 agent's mean; for the bare bus, one client's mean; its manager and recorder figures are
-``null``); ``realtime_clock`` is the runtime's ``"manager"`` or ``"shared"`` in realtime
-(``null`` in lockstep and for the ticked bare bus; ``"shared"`` for the self-clocked bare
-bus, run with ``--realtime-clock both`` for information: the verdicts keep the ticked bare
-bus); ``load_1min`` is the 1-minute load average when the configuration began (the
-benchmark's own processes raise it; ``--settle-load 1`` waits for a quiet machine before
-each run); ``last_late_tick`` is the runtime's last late tick (``null``: none late; always
-``null`` for the bare bus): under ``START_TICKS`` every late tick was a start-up transient,
-and the verdict line says so; ``cpu_busy`` is the fraction [0, 1] of the machine's CPU time
-that was busy while the configuration ticked, anyone's work (``cpu_sampler.py``; the
-``busy%`` column, and the verdict lines beside their baseline's): near 1, the run was short
-of CPU.
+``null``; ``recorder_cpu_ms``: from the recorder's ready until every record is written, so what
+it writes after the last tick when it fell behind counts too, the file's closing not);
+``realtime_clock`` is the runtime's ``"manager"`` or ``"shared"`` in realtime (``null`` in
+lockstep and for the ticked bare bus; ``"shared"`` for the self-clocked bare bus, run with
+``--realtime-clock both`` for information: the verdicts keep the ticked bare bus);
+``load_1min`` is the 1-minute load average when the configuration began (the benchmark's own
+processes raise it; ``--settle-load 1`` waits for a quiet machine before each run);
+``last_late_tick`` is the runtime's last late tick (``null``: none late; always ``null`` for
+the bare bus): under ``START_TICKS`` every late tick was a start-up transient, and the verdict
+line says so; ``cpu_busy`` is the fraction [0, 1] of the machine's CPU time that was busy while
+the configuration ticked, anyone's work (``cpu_sampler.py``; the ``busy%`` column, and the
+verdict lines beside their baseline's): near 1, the run was short of CPU.
 """
 
 from __future__ import annotations
@@ -127,7 +128,7 @@ class Result:
     rate_hz: float
     summary: RunSummary
     manager_cpu_s: float  # orchestrator process CPU per tick [s] (router threads included)
-    recorder_cpu_s: float  # recorder process CPU per tick [s]
+    recorder_cpu_s: float  # recorder process CPU per tick [s], ready to every record written
     agent_cpu_s: float  # one agent process's CPU per tick [s] (mean over the agents)
     startup_s: float  # fork server started (bus opening beside it) to every agent armed [s]
     load_1min: float  # the machine's 1-minute load average when the configuration began
@@ -342,6 +343,10 @@ def run_once(
         finally:
             manager.close()
             if isinstance(sink, RecorderProcess):
+                # A recorder behind the ticks (niced, the CPUs full) writes the rest after the
+                # last tick: its CPU is read once every record is written, before the file's
+                # closing (a cost per run, not per tick).
+                sink.wait_written(RECORDER_CATCH_UP_S)
                 recorder_cpu += process_cpu_s(sink.process.pid) or 0.0
                 sink.close()
             elif sink is not None:
@@ -394,6 +399,8 @@ LOCKSTEP_SPEED, LOCKSTEP_FRACTION = 10.0, 0.75
 START_TICKS = 10
 #: 32 agents ready within this [s].
 STARTUP_S = 2.0
+#: After the ticks, how long the recorder may take to write what it is behind with [s].
+RECORDER_CATCH_UP_S = 60.0
 
 
 def _busy_note(busy: float, bare_busy: float) -> str:

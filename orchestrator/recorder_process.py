@@ -596,6 +596,22 @@ class RecorderProcess:
         """Records handed to :meth:`write` and not yet acknowledged by the recorder [bytes]."""
         return self._queued
 
+    def wait_written(self, timeout_s: float) -> bool:
+        """Wait (bounded by ``timeout_s`` [s]) until every record handed to :meth:`write` is
+        acknowledged, i.e. written to the file; ``False`` on timeout or a failed recording.
+
+        A recorder behind the ticks (niced, on full CPUs) catches up here; the file stays
+        open (:meth:`close` ends it).
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while self._queued > 0 and not self._failed:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._changed.wait(remaining)
+            return not self._failed
+
     @property
     def failed(self) -> str:
         """Why the recording cannot go on ("" while all is well)."""

@@ -275,6 +275,30 @@ def test_write_does_not_wait_for_a_stopped_recorder(tmp_path: Path, experiment: 
     assert y_count(path) == ticks  # nothing dropped
 
 
+def test_wait_written_returns_once_a_stopped_recorder_caught_up(
+    tmp_path: Path, experiment: Experiment
+) -> None:
+    """Records handed to a stopped recorder are not written: the wait times out. Continued,
+    it writes them, and the wait returns with nothing left unacknowledged."""
+    path = tmp_path / "run.mcap"
+    recorder = RecorderProcess(path, experiment, log_time_ns=T0)
+    try:
+        recorder.wait_ready()
+        os.kill(recorder.process.pid, signal.SIGSTOP)
+        try:
+            Ticks(experiment).hand(recorder, range(200))
+            assert recorder.queued_bytes > 0
+            assert not recorder.wait_written(0.2)
+        finally:
+            os.kill(recorder.process.pid, signal.SIGCONT)
+        assert recorder.wait_written(60.0)
+        assert recorder.queued_bytes == 0
+        assert recorder.process.poll() is None  # still recording: the file is not closed
+    finally:
+        assert recorder.close() == 0
+    assert y_count(path) == 200
+
+
 def test_write_waits_beyond_the_bound_and_says_so_once(
     tmp_path: Path, experiment: Experiment, caplog: pytest.LogCaptureFixture
 ) -> None:
