@@ -346,7 +346,12 @@ def run_once(
                 # A recorder behind the ticks (niced, the CPUs full) writes the rest after the
                 # last tick: its CPU is read once every record is written, before the file's
                 # closing (a cost per run, not per tick).
-                sink.wait_written(RECORDER_CATCH_UP_S)
+                if not sink.wait_written(RECORDER_CATCH_UP_S):
+                    print(
+                        f"the recorder did not write every record within "
+                        f"{RECORDER_CATCH_UP_S:g} s of the last tick: its CPU figure is short",
+                        file=sys.stderr,
+                    )
                 recorder_cpu += process_cpu_s(sink.process.pid) or 0.0
                 sink.close()
             elif sink is not None:
