@@ -72,9 +72,9 @@ class RunTally:
         say: where the overload warning also goes (the status display's log; ``None``: only
             the log).
         cpu_times: reads the machine's busy and total CPU time
-            (:func:`~hilswarm.orchestrator.machine_cpu.read_cpu_times`), at the first and the
-            last tick of each block of :data:`OVERLOAD_BLOCK_TICKS` ticks, so that the warning
-            can say how busy the CPUs were over the late block (``None``: it does not say).
+            (:func:`~hilswarm.orchestrator.machine_cpu.read_cpu_times`), at the first tick of
+            each block of :data:`OVERLOAD_BLOCK_TICKS` ticks and at the last of a late one, so
+            that the warning can say how busy the CPUs were over it (``None``: it does not say).
     """
 
     def __init__(
@@ -133,10 +133,10 @@ class RunTally:
         if (k + 1) % OVERLOAD_BLOCK_TICKS:
             return
         late_count, self._late_in_block = self._late_in_block, 0
-        first = self._block_cpu
-        last = self._cpu_times() if first is not None and self._cpu_times is not None else None
         if late_count > OVERLOAD_LATE_FRACTION * OVERLOAD_BLOCK_TICKS:
             self._overload_reported = True
+            first, times = self._block_cpu, self._cpu_times
+            last = times() if first is not None and times is not None else None
             message = (
                 f"{late_count} of ticks {k + 1 - OVERLOAD_BLOCK_TICKS}..{k} were late: the agents "
                 f"do not keep up with {self.rate_hz:g} Hz here ({_cause(first, last)})"
