@@ -113,6 +113,7 @@ from hilswarm.agents.tick_engine import (  # noqa: F401 - re-exported: the engin
     is_warmup,
     preroll_times,
 )
+from hilswarm.agents.timed_queue import get_within
 
 logger = logging.getLogger(__name__)
 
@@ -548,10 +549,10 @@ class Agent:
 
     def _loop(self) -> int:
         """The main thread while running: rare work only (ticks run on the worker)."""
-        get = self._queue.get
+        events = self._queue
         while not self._stop_requested:
             try:
-                item = get(timeout=0.25)
+                item = get_within(events, 0.25)
             except queue.Empty:
                 item = None
             if item is not None:
@@ -715,7 +716,7 @@ class Agent:
 
     def _work_loop(self) -> None:
         """The worker: ticks, then commands between ticks, then the telemetry batch."""
-        get, engine, lock, clock = self._work.get, self.engine, self._engine_lock, self._clock
+        work, engine, lock, clock = self._work, self.engine, self._engine_lock, self._clock
         preroll: list[float] = []  # self-clocked: when the warm-up outputs are due [s]
         try:
             while True:
@@ -733,7 +734,7 @@ class Agent:
                     timeout = min(timeout, preroll[0])
                 timeout -= clock()
                 try:
-                    item = get(timeout=min(max(timeout, 0.0), 1.0))
+                    item = get_within(work, min(timeout, 1.0))
                 except queue.Empty:
                     item = None
                 self._wake_pending = False

@@ -48,6 +48,7 @@ from typing import IO, Any
 import setproctitle
 from hilswarm.agents import registry
 from hilswarm.agents.errors import HilswarmError
+from hilswarm.agents.timed_queue import get_within
 
 logger = logging.getLogger(__name__)
 
@@ -192,7 +193,7 @@ class ForkServer:
             except OSError as exc:
                 raise SpawnError(f"the agent fork server is gone: {exc}") from exc
             try:
-                reply = self._replies.get(timeout=SPAWN_TIMEOUT_S)
+                reply = get_within(self._replies, SPAWN_TIMEOUT_S)
             except queue.Empty:
                 raise SpawnError(
                     f"the agent fork server did not answer within {SPAWN_TIMEOUT_S:g} s"

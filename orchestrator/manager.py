@@ -55,6 +55,7 @@ import zenoh
 from hilswarm.agents import bus, bus_callback
 from hilswarm.agents.agent import MANAGER_NAME
 from hilswarm.agents.tick_engine import is_warmup, start_lead
+from hilswarm.agents.timed_queue import get_within
 from hilswarm.orchestrator.experiment import Experiment, self_clocked
 from hilswarm.orchestrator.frame_schedule import FRAME_ACQUIRE_WAIT_S, FrameSchedule
 from hilswarm.orchestrator.machine_cpu import read_cpu_times
@@ -545,7 +546,7 @@ class InstanceManager:
                 check()
             self._flush_records()
             try:
-                item = self._events.get(timeout=min(remaining, 0.1))
+                item = get_within(self._events, min(remaining, 0.1))
             except queue.Empty:
                 continue
             kind = item[0]
@@ -567,7 +568,7 @@ class InstanceManager:
     def run(self) -> RunSummary:
         """Send every tick of the experiment, then stop the agents. Returns the summary."""
         realtime = self._realtime
-        clock, get, dt = self._clock, self._events.get, self.dt
+        clock, events, dt = self._clock, self._events, self.dt
         tick, feed = self._tick, self._feed
         with self._lock:
             tick.recount()
@@ -630,7 +631,7 @@ class InstanceManager:
             if feed is not None and now >= feed.next_flush:  # no tick completed to carry it
                 self._flush_records(now)
             try:
-                item = get(timeout=max(0.0, wait_until - clock()))
+                item = get_within(events, wait_until - clock())
             except queue.Empty:
                 item = None
             if item is not None:
@@ -884,7 +885,7 @@ class InstanceManager:
             if remaining <= 0:
                 return
             try:
-                item = self._events.get(timeout=remaining)
+                item = get_within(self._events, remaining)
             except queue.Empty:
                 return
             if item[0] == _STOP:
@@ -1025,7 +1026,7 @@ class InstanceManager:
                     )
                 break
             try:
-                item = self._events.get(timeout=min(remaining, self._flush_period_s * 5))
+                item = get_within(self._events, min(remaining, self._flush_period_s * 5))
             except queue.Empty:
                 continue
             if item[0] == _GONE:

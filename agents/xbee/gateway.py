@@ -51,6 +51,7 @@ import serial
 import zenoh
 from hilswarm.agents import bus
 from hilswarm.agents.errors import HilswarmError
+from hilswarm.agents.timed_queue import get_within
 from hilswarm.agents.xbee.air import AirParams, uart_s
 from hilswarm.agents.xbee.api_frames import (
     BROADCAST_64,
@@ -180,7 +181,6 @@ class Gateway:
         self._sent: dict[str, tuple[float, float]] = {}
         self._frame_id = 0
         self._pending: dict[int, str] = {}  # frame id -> robot name
-        self._at_answers: queue.SimpleQueue[AtResponse] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._entities: list[Any] = []
@@ -378,7 +378,7 @@ class Gateway:
                 item = (
                     self._outbox.get()
                     if due is None
-                    else self._outbox.get(timeout=max(0.0, due - self.clock()))
+                    else get_within(self._outbox, due - self.clock())
                 )
             except queue.Empty:
                 item = ()  # a round's gathering time is over
@@ -524,8 +524,8 @@ class Gateway:
                 robot.tx_failures += 1
             if isinstance(frame, TransmitStatus):
                 robot.retries += frame.retries
-        elif isinstance(frame, AtResponse):
-            self._at_answers.put(frame)
+        elif isinstance(frame, AtResponse):  # a late answer to a start-up query: nothing waits
+            _log.debug("gateway: AT %s answer after start-up ignored", frame.command)
 
     def _lost(self, cause: str) -> None:
         """The coordinator went away: reopen until it is back (or the gateway stops)."""
@@ -587,7 +587,7 @@ class Gateway:
         last_t = self.clock()
         while not self._stop.is_set():
             try:
-                self._last_tick = self._ticks.get(timeout=self.stats_period_s)
+                self._last_tick = get_within(self._ticks, self.stats_period_s)
                 while True:  # a burst of releases (lockstep window): report once
                     self._last_tick = self._ticks.get_nowait()
             except queue.Empty:
