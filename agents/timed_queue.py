@@ -10,9 +10,9 @@ timeout means *wait forever*. So the wait ends only at the next ``put``. Measure
 development machine (``SimpleQueue.get(timeout=2e-6)`` on an empty queue whose lock was free,
 watched by a thread that puts after 50 ms without progress): 5 of 54,270 calls blocked until
 that put on an idle machine, 2 of 104,511 beside two busy processes on one core. A swarm on two
-cores held the orchestrator's manager that way until the run's end (its events queue: nothing
-was put any more), and every periodic wait of an agent could lose a tick or more. CPython 3.13
-rewrote the wait (a parking lot that checks for a passed deadline).
+cores held the orchestrator's manager that way from near the run's end on (its events queue:
+nothing was put any more), and every periodic wait of an agent could lose a tick or more.
+CPython 3.13 rewrote the wait (a parking lot that checks for a passed deadline).
 
 :func:`get_within` takes an item without waiting first. On an empty queue that leaves the
 queue's lock taken by the caller, so the timed ``get`` that follows starts with a lock it
@@ -21,7 +21,8 @@ the queue, so the loop never goes round to the negative time left. It needs one 
 queue (the other waits would take that lock), as every queue of the project has.
 ``queue.Queue`` has no such flaw (its timed wait is Python code on a
 :class:`threading.Condition`), but it is not safe to put into from a signal handler, which the
-agents' and the manager's queues are, and costs a few microseconds per item more.
+agents' and the manager's queues are, and costs more (a put and a get with an item there:
+2.1-2.5 µs against 0.25 µs, one thread, on the development machine).
 """
 
 from __future__ import annotations
