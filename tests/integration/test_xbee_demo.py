@@ -4,6 +4,7 @@ the real firmware in simavr behind its simulated radio, through the gateway proc
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -171,10 +172,13 @@ def test_xbee_swarm_broadcast_demo_runs_and_every_robot_moves(
         assert len(own) <= stale <= len(own) + 1, (name, len(own), stale)
         if answer == "at_once":  # every answer but the robot's first reply
             assert stale >= 95, (name, stale)
-        else:  # reply_every = 5: the robot's own replies every 5th tick, through the radio,
-            # and on the ticks after a reply that was lost or late (asked again, counted)
+        else:  # reply_every = 5: the robot's own replies on every 5th round (a round is a
+            # BCAST: one per tick, more when a TICK misses its round's gathering, as on a busy
+            # machine: 150-166 for 100 ticks measured), its first reply, and on the ticks after
+            # a reply that was lost or late (asked again, counted); every other answer is stale
             again = totals["robots"][name]["asked_again"]
-            assert 70 <= stale + again <= 85, (name, stale, again)
+            turns = math.ceil(totals["broadcast_frames"] / 5)  # rounds <= BCAST frames
+            assert 100 - turns - 1 <= stale + again <= 85, (name, stale, again, turns)
             assert totals["robots"][name]["fresh_replies"] >= 100 - stale - 1, name
 
 
