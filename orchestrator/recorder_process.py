@@ -603,14 +603,9 @@ class RecorderProcess:
         A recorder behind the ticks (niced, on full CPUs) catches up here; the file stays
         open (:meth:`close` ends it).
         """
-        deadline = time.monotonic() + timeout_s
         with self._changed:
-            while self._queued > 0 and not self._failed:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._changed.wait(remaining)
-            return not self._failed
+            written = self._changed.wait_for(lambda: self._queued <= 0 or self._failed, timeout_s)
+            return bool(written) and not self._failed
 
     @property
     def failed(self) -> str:
