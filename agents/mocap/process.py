@@ -201,14 +201,14 @@ class MocapProcess:
                         )
                     )
         if self._tick_sub is not None and self.decimator.ticked:
-            self._tick_sub.undeclare()  # tick messages may come at any rate: no more needed
-            self._tick_sub = None
-            if self.settings.tick_frames_only:
+            if self.settings.tick_frames_only:  # said before the state below shows it
                 logger.warning(
                     "tick_frames_only has no effect in this run: it is driven by tick messages "
                     '(agents on other hosts, an XBee gateway or realtime_clock = "manager"); '
                     "every frame's poses are published"
                 )
+            self._tick_sub.undeclare()  # tick messages may come at any rate: no more needed
+            self._tick_sub = None
         clock_pub = self._clock_pub
         if clock_pub is not None:  # see frame_clock
             clock_pub.put(frame_clock.encode(number, host_time))
