@@ -95,10 +95,47 @@ def _ring_neighbours(index: int, n: int) -> list[int]:
 #: The self-clocked start message: T0 [s, time.monotonic] and the tick period [s].
 _START = struct.Struct("<dd")
 
+#: ``--tick-work`` choices: the cases of ``benchmarks/agent_tick.py``.
+TICK_WORK_CASES = ("frisbee", "consensus", "smd")
 
-def client(index: int, n: int, endpoint: str, pattern: str) -> None:
+
+class TickWork:
+    """One agent's own tick work (``Agent.tick_work``: controller, vehicle, board, sensing,
+    encoding) run by a bare client in its bus callback, for ``--tick-work``.
+
+    The agent is one of ``benchmarks/agent_tick.py``'s cases, built as an agent process builds
+    it and never on a bus; the neighbours' outputs it steps with are the newest ones this
+    client heard (no data until the first). What a bare bus with this work measures is the
+    least any runtime doing the same work on this bus could cost: no worker thread, tick
+    engine, manager accounting or recording.
+    """
+
+    def __init__(self, case_name: str, ring_neighbours: list[int]) -> None:
+        from agent_tick import cases, offline_agent  # noqa: PLC0415 - an agent's imports, if asked
+
+        case = {case.name: case for case in cases()}[case_name]
+        self._agent = offline_agent(case.config)
+        names = list(case.config.neighbours)
+        #: ring index -> the case's neighbour name (the case has at most two)
+        self.names = dict(zip(ring_neighbours, names, strict=False))
+        self.neighbours: dict[str, np.ndarray | None] = dict.fromkeys(names)
+
+    def heard(self, j: int, values: np.ndarray) -> None:
+        """Ring neighbour ``j``'s newest output (its values as decoded)."""
+        name = self.names.get(j)
+        if name is not None:
+            self.neighbours[name] = values
+
+    def tick(self, k: int, t: float) -> tuple[bytes, bytes]:
+        """Tick ``k`` at experiment time ``t`` [s]: the y message and its report."""
+        y_payload, report, _u, _x = self._agent.tick_work(k, t, neighbours=self.neighbours)
+        return y_payload, report
+
+
+def client(index: int, n: int, endpoint: str, pattern: str, tick_work: str = "") -> None:
     """One client process; ``pattern``: ``tick`` (realtime), ``barrier`` (lockstep, answering
-    each tick as ``tick`` does), ``clock`` or ``window`` (see the module doc)."""
+    each tick as ``tick`` does), ``clock`` or ``window`` (see the module doc); ``tick_work``: a
+    :class:`TickWork` case run before each answer (empty: none)."""
     keys = bus.BusKeys("bare")
     if pattern in ("barrier", "window"):  # lockstep: batch work, as the runtime's agents
         use_batch_scheduling()
@@ -106,6 +143,7 @@ def client(index: int, n: int, endpoint: str, pattern: str) -> None:
     name = f"r{index}"
     publisher = session.declare_publisher(keys.y(name), **bus.TICK_PATH_QOS)
     neighbours = _ring_neighbours(index, n)
+    work = TickWork(tick_work, neighbours) if tick_work else None
     lock = threading.Lock()
     # window pattern: the newest y_k heard per neighbour, our next tick, the released horizon
     heard = dict.fromkeys(neighbours, -1)
@@ -113,7 +151,11 @@ def client(index: int, n: int, endpoint: str, pattern: str) -> None:
     stop = threading.Event()
 
     def answer(k: int, t: float) -> None:
-        publisher.put(bus.encode_vector(k, t, _Y_VALUES), attachment=_REPORT)
+        if work is None:
+            publisher.put(bus.encode_vector(k, t, _Y_VALUES), attachment=_REPORT)
+            return
+        y_payload, report = work.tick(k, t)
+        publisher.put(y_payload, attachment=report)
 
     def advance() -> None:  # window pattern, under the lock
         while progress["next"] <= progress["horizon"] and all(
@@ -123,7 +165,10 @@ def client(index: int, n: int, endpoint: str, pattern: str) -> None:
             progress["next"] += 1
 
     def on_neighbour(j: int, sample: zenoh.Sample) -> None:
-        k, _t, _values = bus.decode_vector(sample.payload.to_bytes())
+        k, _t, values = bus.decode_vector(sample.payload.to_bytes())
+        if work is not None:
+            values.flags.writeable = False  # as an agent hands it to its controller
+            work.heard(j, values)
         if pattern == "window":
             with lock:
                 heard[j] = max(heard[j], k)
@@ -184,12 +229,17 @@ def run_bare(
     self_clocked: bool = False,
     window: int = 0,
     unix: bool = False,
+    tick_work: str = "",
 ) -> BareResult:
     """Start the router and ``n`` client processes, tick, and return the figures.
 
     ``self_clocked`` (realtime only): clients keep the schedule themselves. ``window`` > 0
     (lockstep only): free-running clients within a released horizon instead of a barrier.
+    ``tick_work``: each client runs that case's agent tick work before each answer
+    (:class:`TickWork`; empty: none, the plain bare bus).
     """
+    if tick_work and tick_work not in TICK_WORK_CASES:
+        raise ValueError(f"tick_work {tick_work!r}: expected one of {TICK_WORK_CASES}")
     if self_clocked and lockstep:
         raise ValueError("self_clocked is a realtime pattern; window is the lockstep one")
     if window and not lockstep:
@@ -269,9 +319,13 @@ def run_bare(
     ]
     pattern = "clock" if self_clocked else "window" if window else "barrier" if lockstep else "tick"
     started = time.perf_counter()
-    command = [sys.executable, os.path.abspath(__file__), "--client"]
+    command = [sys.executable, os.path.abspath(__file__)]
+    if tick_work:
+        command += ["--tick-work", tick_work]
     clients = [
-        subprocess.Popen([*command, str(i), str(n), endpoint, pattern], stdin=subprocess.PIPE)
+        subprocess.Popen(
+            [*command, "--client", str(i), str(n), endpoint, pattern], stdin=subprocess.PIPE
+        )
         for i in range(n)
     ]
     late = 0
@@ -351,11 +405,19 @@ def main(argv: list[str] | None = None) -> int:
         "--unix", action="store_true", help="unix-socket transport instead of TCP on loopback"
     )
     parser.add_argument(
+        "--tick-work",
+        choices=TICK_WORK_CASES,
+        default="",
+        help="each client also runs this agent_tick.py case's tick work before each answer, "
+        "in its callback: the least any runtime doing that work could cost on this bus",
+    )
+    parser.add_argument(
         "--short", action="store_true", help="CI-sized: each pattern, 8 clients at 50 Hz"
     )
     args = parser.parse_args(argv)
     if args.client:
-        client(int(args.client[0]), int(args.client[1]), args.client[2], args.client[3])
+        index, n, endpoint, pattern = args.client
+        client(int(index), int(n), endpoint, pattern, args.tick_work)
         return 0
     if args.self_clocked and args.lockstep:
         parser.error("--self-clocked is a realtime pattern (use --window with --lockstep)")
@@ -377,24 +439,29 @@ def main(argv: list[str] | None = None) -> int:
         ]  # fmt: skip
         n, rate = args.agents, args.rate
     for options in runs:
-        result = run_bare(n=n, rate_hz=rate, unix=args.unix, **options)
+        result = run_bare(n=n, rate_hz=rate, unix=args.unix, tick_work=args.tick_work, **options)
         print(describe(result, self_clocked=bool(options["self_clocked"]),
-                       window=int(options["window"])))  # fmt: skip
+                       window=int(options["window"]), tick_work=args.tick_work))  # fmt: skip
     return 0
 
 
-def describe(result: BareResult, *, self_clocked: bool, window: int) -> str:
-    """One line of figures for a run."""
+def describe(result: BareResult, *, self_clocked: bool, window: int, tick_work: str = "") -> str:
+    """One line of figures for a run: its timing, one client's CPU per tick, the machine's
+    CPUs busy while it ticked and the 1-minute load at its end."""
     p50, p99 = result.percentiles_ms()
+    what = f"bare bus + {tick_work} tick work" if tick_work else "bare bus"
     head = f"{result.n} clients at {result.rate_hz:g} Hz"
+    cpu = (f"; client {result.client_cpu_s * 1e3:.3f} ms of CPU per tick, "
+           f"{100 * result.cpu_busy:.0f} % busy, load {os.getloadavg()[0]:.2f}")  # fmt: skip
     if result.mode == "lockstep":
         if window:
-            return f"bare bus, lockstep window {window}, {head}: {result.speed:.1f}x real time"
-        return (f"bare bus, lockstep barrier, {head}: {result.speed:.1f}x real time "
-                f"(round trip p50 {p50:.2f} ms)")  # fmt: skip
+            return (f"{what}, lockstep window {window}, {head}: {result.speed:.1f}x real time"
+                    + cpu)  # fmt: skip
+        return (f"{what}, lockstep barrier, {head}: {result.speed:.1f}x real time "
+                f"(round trip p50 {p50:.2f} ms)" + cpu)  # fmt: skip
     how = "self-clocked" if self_clocked else "ticked"
-    return (f"bare bus, realtime {how}, {head}: p50 {p50:.2f} ms, p99 {p99:.2f} ms, "
-            f"late {100 * result.late_fraction:.2f} %")  # fmt: skip
+    return (f"{what}, realtime {how}, {head}: p50 {p50:.2f} ms, p99 {p99:.2f} ms, "
+            f"late {100 * result.late_fraction:.2f} %" + cpu)  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -70,6 +70,7 @@ from pathlib import Path
 from bare_bus import BareResult, run_bare
 from cpu_sampler import CpuSampler, process_cpu_s
 from hilswarm.agents import bus
+from hilswarm.agents.agent_config import DEFAULT_LOCKSTEP_WINDOW
 from hilswarm.orchestrator.experiment import load_experiment
 from hilswarm.orchestrator.launcher import AgentLauncher, agent_config_for
 from hilswarm.orchestrator.manager import InstanceManager
@@ -254,13 +255,21 @@ def result_json(result: Result) -> str:
     )  # fmt: skip
 
 
-def bare_json(bare: BareResult, load_1min: float, realtime_clock: str | None = None) -> str:
+def bare_json(
+    bare: BareResult,
+    load_1min: float,
+    realtime_clock: str | None = None,
+    *,
+    vehicle: str | None = None,
+) -> str:
     """:func:`json_line` of a bare-bus baseline (``agent_cpu_ms``: one client's CPU;
-    ``realtime_clock`` ``"shared"``: the self-clocked bare bus)."""
+    ``realtime_clock`` ``"shared"``: the self-clocked bare bus). With ``vehicle``, the work
+    floor of that fleet (``kind`` ``"bare_work"``: its clients ran the fleet's tick work)."""
     p50, p99 = bare.percentiles_ms()
     return json_line(
-        kind="bare", mode=bare.mode, agents=bare.n, rate_hz=bare.rate_hz, p50_ms=p50,
-        p99_ms=p99, late_fraction=bare.late_fraction, speed=bare.speed,
+        kind="bare_work" if vehicle else "bare", mode=bare.mode, vehicle=vehicle,
+        agents=bare.n, rate_hz=bare.rate_hz, p50_ms=p50, p99_ms=p99,
+        late_fraction=bare.late_fraction, speed=bare.speed,
         startup_s=bare.startup_s, load_1min=load_1min, agent_cpu_ms=bare.client_cpu_s * 1e3,
         realtime_clock=realtime_clock, cpu_busy=bare.cpu_busy,
     )  # fmt: skip
@@ -364,17 +373,17 @@ def run_once(
     )  # fmt: skip
 
 
-def baseline_row(bare: BareResult, load_1min: float, label: str = "") -> str:
+def baseline_row(bare: BareResult, load_1min: float, label: str = "", what: str = "") -> str:
     """A table row for a bare-bus baseline run (same columns as :meth:`Result.row`; ``agt``:
-    one client's CPU per tick)."""
+    one client's CPU per tick; ``what``: the first column, default ``bare bus``)."""
     p50, p99 = bare.percentiles_ms()
     late = "-" if bare.mode == "lockstep" else f"{100 * bare.late_fraction:.2f}"
     speed = f"{bare.speed:.1f}x" if bare.mode == "lockstep" else "-"
     return (
-        f"{'bare bus':9} {label or bare.mode:9} {bare.n:>3} {bare.rate_hz:>5g} {bare.ticks:>6} "
-        f"{p50:>7.2f} {p99:>7.2f} {late:>6} {'-':>8} {bare.client_cpu_s * 1e3:>8.3f} "
-        f"{'-':>8} {speed:>7} {bare.startup_s:>6.2f} {load_1min:>5.2f} "
-        f"{_percent(bare.cpu_busy):>5}"
+        f"{what or 'bare bus':9} {label or bare.mode:9} {bare.n:>3} {bare.rate_hz:>5g} "
+        f"{bare.ticks:>6} {p50:>7.2f} {p99:>7.2f} {late:>6} {'-':>8} "
+        f"{bare.client_cpu_s * 1e3:>8.3f} {'-':>8} {speed:>7} {bare.startup_s:>6.2f} "
+        f"{load_1min:>5.2f} {_percent(bare.cpu_busy):>5}"
     )
 
 
@@ -507,6 +516,53 @@ def verdicts(
     return lines
 
 
+#: ``--work-floor``: the ``bare_bus.py --tick-work`` case of each fleet's vehicle and
+#: controller (``benchmarks/agent_tick.py``).
+FLEET_TICK_WORK = {"frisbee": "frisbee", "simulated": "consensus"}
+
+
+def run_work_floor(
+    *, vehicle: str, mode: str, n: int, rate_hz: float, seconds: float, self_clocked: bool
+) -> BareResult:
+    """The bare bus whose clients also run the fleet's tick work in their callbacks, in the
+    runtime's own pattern (self-clocked or ticked; lockstep within the default window): the
+    least any runtime doing that work could cost on this bus and machine."""
+    lockstep = mode == "lockstep"
+    return run_bare(
+        n=n, rate_hz=rate_hz, seconds=seconds, lockstep=lockstep,
+        self_clocked=self_clocked and not lockstep,
+        window=DEFAULT_LOCKSTEP_WINDOW if lockstep else 0,
+        tick_work=FLEET_TICK_WORK[vehicle],
+    )  # fmt: skip
+
+
+def floor_lines(
+    results: list[Result], floors: dict[tuple[str, str, int, float], BareResult]
+) -> list[str]:
+    """Information, not a target: each runtime figure against its fleet's work floor."""
+    lines = []
+    for r in results:
+        floor = floors.get((r.vehicle, r.mode, r.n, r.rate_hz))
+        if floor is None:
+            continue
+        head = f"[{r.vehicle}] {r.label} {r.n} @ {r.rate_hz:g} Hz"
+        if r.mode == "lockstep":
+            lines.append(
+                f"{head}: {r.summary.speed:.1f}x against the work floor's "
+                f"{floor.speed:.1f}x (ratio {r.summary.speed / max(floor.speed, 1e-9):.2f})"
+            )
+            continue
+        _, p99 = r.percentiles_ms
+        _, floor_p99 = floor.percentiles_ms()
+        ratio = p99 / floor_p99 if math.isfinite(floor_p99) and floor_p99 else math.nan
+        lines.append(
+            f"{head}: late {100 * r.late_fraction:.2f} % against the work floor's "
+            f"{100 * floor.late_fraction:.2f} %, p99 {p99:.2f} ms against {floor_p99:.2f} ms "
+            f"(ratio {ratio:.2f})"
+        )
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -545,6 +601,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-baseline", action="store_true", help="skip the bare-bus baseline runs"
     )
+    parser.add_argument(
+        "--work-floor", action="store_true",
+        help="also run each configuration's work floor: the bare bus whose clients run the "
+        "fleet's own tick work in their callbacks, in the runtime's pattern (information: the "
+        "least any runtime with that fleet could cost here; the targets keep the bare bus)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     os.environ["ZENOH_RUNTIME"] = bus.LEAN_RUNTIME if args.zenoh_runtime == "lean" else "()"
     lockstep_seconds = 30.0
@@ -571,6 +633,7 @@ def main(argv: list[str] | None = None) -> int:
     print(HEADER, flush=True)
     results: list[Result] = []
     baselines: dict[tuple[str, int, float], BareResult] = {}
+    floors: dict[tuple[str, str, int, float], BareResult] = {}
     for vehicle in fleets:
         configs = [("realtime", n, rate, args.seconds) for n, rate in realtime]
         if not args.no_lockstep:
@@ -595,6 +658,19 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 print(baseline_row(bare, load, "rt/shared"), flush=True)
                 print(bare_json(bare, load, "shared"), flush=True)
+            if args.work_floor:
+                settle(args.settle_load)
+                load = os.getloadavg()[0]
+                self_clocked = mode == "realtime" and "shared" in clocks
+                floor = run_work_floor(
+                    vehicle=vehicle, mode=mode, n=n, rate_hz=rate, seconds=seconds,
+                    self_clocked=self_clocked,
+                )  # fmt: skip
+                floors[(vehicle, mode, n, rate)] = floor
+                label = "rt/shared" if self_clocked else mode
+                print(baseline_row(floor, load, label, what="bus+work"), flush=True)
+                clock_key = "shared" if self_clocked else None
+                print(bare_json(floor, load, clock_key, vehicle=vehicle), flush=True)
             for clock in clocks if mode == "realtime" else ["manager"]:
                 settle(args.settle_load)
                 result = run_once(
@@ -607,6 +683,10 @@ def main(argv: list[str] | None = None) -> int:
     print("\ntargets (each runtime figure against its paired bare-bus baseline):")
     for line in verdicts(results, baselines):
         print("  " + line)
+    if floors:
+        print("\nagainst the work floor (the bus with the fleet's own tick work; information):")
+        for line in floor_lines(results, floors):
+            print("  " + line)
     return 0
 
 

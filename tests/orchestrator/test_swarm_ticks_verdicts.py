@@ -87,3 +87,35 @@ def test_the_machine_s_busy_cpus_beside_the_baseline_s(swarm_ticks: ModuleType) 
     lines = swarm_ticks.verdicts([result], {("realtime", 32, 100.0): paired})
     line = next(line for line in lines if "32 agents at 100 Hz" in line)
     assert "load 0.50, CPUs 93 % busy vs bare 48 %" in line
+
+
+def test_the_work_floor_s_rows_json_and_lines(swarm_ticks: ModuleType) -> None:
+    """``--work-floor``: its JSON line is kind ``bare_work`` with the fleet; each runtime figure
+    is set against its fleet's floor (ratios from the given figures), the others are not."""
+    floor = swarm_ticks.BareResult(32, 100.0, "realtime", 400, 0, np.full(400, 0.0025), 4.0)
+    line = json.loads(swarm_ticks.bare_json(floor, 0.5, "shared", vehicle="frisbee"))
+    assert (line["kind"], line["vehicle"], line["realtime_clock"]) == (
+        "bare_work",
+        "frisbee",
+        "shared",
+    )
+    assert json.loads(swarm_ticks.bare_json(bare(swarm_ticks), 0.5))["kind"] == "bare"
+    assert swarm_ticks.baseline_row(floor, 0.5, "rt/shared", what="bus+work").startswith(
+        "bus+work  rt/shared  32   100"
+    )
+    summary = RunSummary(experiment="bench", mode="lockstep", planned_ticks=3000, dt_s=0.01,
+                         stop_reason="completed", ticks=3000, wall_s=5.0)  # fmt: skip
+    lockstep = swarm_ticks.Result("frisbee", "lockstep", 8, 100.0, summary, 0.0007, 0.0002,
+                                  0.0003, 0.4, 0.5)  # fmt: skip
+    lockstep_floor = swarm_ticks.BareResult(8, 100.0, "lockstep", 3000, 0, np.zeros(0), 3.0)
+    floors = {
+        ("frisbee", "realtime", 32, 100.0): floor,
+        ("frisbee", "lockstep", 8, 100.0): lockstep_floor,
+    }
+    lines = swarm_ticks.floor_lines([runtime(swarm_ticks, [7]), lockstep], floors)
+    assert lines == [
+        "[frisbee] rt/shared 32 @ 100 Hz: late 0.25 % against the work floor's 0.00 %, "
+        "p99 5.00 ms against 2.50 ms (ratio 2.00)",
+        "[frisbee] lockstep 8 @ 100 Hz: 6.0x against the work floor's 10.0x (ratio 0.60)",
+    ]
+    assert swarm_ticks.floor_lines([runtime(swarm_ticks, [])], {}) == []
