@@ -12,6 +12,7 @@ bounds what the full runtime can reach here.
     python benchmarks/bare_bus.py --short                                 # CI-sized (< 15 s)
     python benchmarks/bare_bus.py --agents 32 --rate 100 --self-clocked   # no tick messages
     python benchmarks/bare_bus.py --agents 8 --rate 100 --lockstep --window 8
+    python benchmarks/bare_bus.py --agents 8 --rate 100 --lockstep --tick-work frisbee
 
 Realtime: tick k is sent at ``T0 + k dt``; a tick is late when some answer is not in when the
 next one is due (as in the runtime). Lockstep: tick k+1 is sent from the callback of the last
@@ -28,6 +29,14 @@ Two leaner patterns bound what any design on this bus could reach, not just the 
 * ``--window W`` (lockstep): clients run tick k as soon as their neighbours' y_{k-1} are in,
   up to a horizon the router moves W ticks ahead of the slowest completed tick, one message
   per half window (as ``hilswarm run`` with ``lockstep_window = W``).
+
+``--tick-work CASE`` (any pattern) makes it the *work floor* of a fleet: each client also runs
+an agent's own tick work (``Agent.tick_work`` of a ``benchmarks/agent_tick.py`` case: the
+Frisbee on ``sim://`` with its waypoint controller, the integrator with consensus, or the
+spring-mass-damper) in its callback before it answers, with the newest outputs it heard from
+its neighbours (its tick path rehearsed first, as an agent's is). No worker thread, tick
+engine, manager accounting or recording: what the bus and that work cost together on this
+machine, a floor for any runtime doing the work (``swarm_ticks.py --work-floor``).
 """
 
 from __future__ import annotations
@@ -105,16 +114,20 @@ class TickWork:
 
     The agent is one of ``benchmarks/agent_tick.py``'s cases, built as an agent process builds
     it and never on a bus; the neighbours' outputs it steps with are the newest ones this
-    client heard (no data until the first). What a bare bus with this work measures is the
-    least any runtime doing the same work on this bus could cost: no worker thread, tick
-    engine, manager accounting or recording.
+    client heard (no data until the first). Its tick path is rehearsed first, as an agent's is
+    before it arms. What a bare bus with this work measures is what the bus and the fleet's
+    own work cost together, without a worker thread, tick engine, manager accounting or
+    recording.
     """
 
     def __init__(self, case_name: str, ring_neighbours: list[int]) -> None:
         from agent_tick import cases, offline_agent  # noqa: PLC0415 - an agent's imports, if asked
+        from hilswarm.agents.agent import Agent  # noqa: PLC0415
+        from hilswarm.agents.rehearsal import rehearse  # noqa: PLC0415
 
         case = {case.name: case for case in cases()}[case_name]
         self._agent = offline_agent(case.config)
+        rehearse(Agent, case.config)  # the tick path warm, as an agent's before it arms
         names = list(case.config.neighbours)
         #: ring index -> the case's neighbour name (the case has at most two)
         self.names = dict(zip(ring_neighbours, names, strict=False))

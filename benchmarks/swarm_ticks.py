@@ -9,6 +9,7 @@ and the fraction of late ticks. Lockstep mode: speed as a multiple of real time.
     python benchmarks/swarm_ticks.py --short    # Frisbee fleet, N = 8 at 50 Hz (< 60 s)
     python benchmarks/swarm_ticks.py --agents 32 --rates 100 --vehicle simulated
     python benchmarks/swarm_ticks.py --agents 16 32 --rates 100 --seconds 4 --realtime-clock both
+    python benchmarks/swarm_ticks.py --work-floor --settle-load 0.9   # each with its work floor
 
 ``--realtime-clock`` picks how realtime runs keep time (the experiment's ``realtime_clock``):
 ``shared`` (the default, as ``hilswarm run``: the agents keep the manager's schedule
@@ -27,11 +28,18 @@ process, right before the runtime, so a busy machine shows in both; the runtime 
 The verdicts compare each runtime configuration with its paired baseline (targets in
 docs/running.md, "Performance").
 
+``--work-floor`` also runs each configuration's *work floor* before the runtime (a
+``bus+work`` row): the bare bus whose clients run the fleet's own tick work in their callbacks
+(``bare_bus.py --tick-work``), in the runtime's pattern (self-clocked when the runtime is;
+lockstep within the default window). It is information, not a target: what the bus and the
+fleet's work cost together here, a floor for any runtime with that fleet, and the last lines
+set each runtime figure against it.
+
 Every configuration (baseline and runtime) also prints one JSON line, for scripts that compare
 runs; its keys are stable (docs/running.md, "Benchmark JSON lines"):
 
-    {"kind": "bare"|"runtime", "mode": "realtime"|"lockstep", "agents", "rate_hz", "p50_ms",
-     "p99_ms", "late_fraction", "speed", "startup_s", "load_1min", "vehicle",
+    {"kind": "bare"|"runtime"|"bare_work", "mode": "realtime"|"lockstep", "agents", "rate_hz",
+     "p50_ms", "p99_ms", "late_fraction", "speed", "startup_s", "load_1min", "vehicle",
      "manager_cpu_ms", "agent_cpu_ms", "recorder_cpu_ms", "realtime_clock", "last_late_tick",
      "cpu_busy"}
 
@@ -524,9 +532,11 @@ FLEET_TICK_WORK = {"frisbee": "frisbee", "simulated": "consensus"}
 def run_work_floor(
     *, vehicle: str, mode: str, n: int, rate_hz: float, seconds: float, self_clocked: bool
 ) -> BareResult:
-    """The bare bus whose clients also run the fleet's tick work in their callbacks, in the
-    runtime's own pattern (self-clocked or ticked; lockstep within the default window): the
-    least any runtime doing that work could cost on this bus and machine."""
+    """The bare bus whose clients also run the fleet's tick work (rehearsed first, as the
+    agents' is) before each answer, in the runtime's own pattern (self-clocked or ticked;
+    lockstep within the default window): what the bus and that work cost together here, a
+    floor for any runtime with that fleet. The window pattern measures speed only (no
+    per-tick completion times: p50/p99 NaN)."""
     lockstep = mode == "lockstep"
     return run_bare(
         n=n, rate_hz=rate_hz, seconds=seconds, lockstep=lockstep,
@@ -604,8 +614,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--work-floor", action="store_true",
         help="also run each configuration's work floor: the bare bus whose clients run the "
-        "fleet's own tick work in their callbacks, in the runtime's pattern (information: the "
-        "least any runtime with that fleet could cost here; the targets keep the bare bus)",
+        "fleet's own tick work before each answer, in the runtime's pattern (information: a "
+        "floor for any runtime with that fleet here; the targets keep the bare bus)",
     )  # fmt: skip
     args = parser.parse_args(argv)
     os.environ["ZENOH_RUNTIME"] = bus.LEAN_RUNTIME if args.zenoh_runtime == "lean" else "()"
