@@ -33,8 +33,9 @@ Two leaner patterns bound what any design on this bus could reach, not just the 
 ``--tick-work CASE`` (any pattern) makes it the *work floor* of a fleet: each client also runs
 an agent's own tick work (``Agent.tick_work`` of a ``benchmarks/agent_tick.py`` case: the
 Frisbee on ``sim://`` with its waypoint controller, the integrator with consensus, or the
-spring-mass-damper) in its callback before it answers, with the newest outputs it heard from
-its neighbours (its tick path rehearsed first, as an agent's is). No worker thread, tick
+spring-mass-damper) before it answers (in its bus callback, or on its clock thread when
+self-clocked), with the newest outputs it heard from its neighbours (its tick path rehearsed
+first, as an agent's is). No worker thread, tick
 engine, manager accounting or recording: what the bus and that work cost together on this
 machine, a floor for any runtime doing the work (``swarm_ticks.py --work-floor``).
 """
@@ -110,7 +111,7 @@ TICK_WORK_CASES = ("frisbee", "consensus", "smd")
 
 class TickWork:
     """One agent's own tick work (``Agent.tick_work``: controller, vehicle, board, sensing,
-    encoding) run by a bare client in its bus callback, for ``--tick-work``.
+    encoding) run by a bare client before each answer, for ``--tick-work``.
 
     The agent is one of ``benchmarks/agent_tick.py``'s cases, built as an agent process builds
     it and never on a bus; the neighbours' outputs it steps with are the newest ones this
