@@ -422,8 +422,8 @@ def main(argv: list[str] | None = None) -> int:
         "--tick-work",
         choices=TICK_WORK_CASES,
         default="",
-        help="each client also runs this agent_tick.py case's tick work before each answer, "
-        "in its callback: the least any runtime doing that work could cost on this bus",
+        help="each client also runs this agent_tick.py case's tick work before each answer "
+        "(rehearsed first): what the bus and that work cost together, a floor for a runtime",
     )
     parser.add_argument(
         "--short", action="store_true", help="CI-sized: each pattern, 8 clients at 50 Hz"

@@ -29,7 +29,7 @@ The verdicts compare each runtime configuration with its paired baseline (target
 docs/running.md, "Performance").
 
 ``--work-floor`` also runs each configuration's *work floor* before the runtime (a
-``bus+work`` row): the bare bus whose clients run the fleet's own tick work in their callbacks
+``bus+work`` row): the bare bus whose clients run the fleet's own tick work before each answer
 (``bare_bus.py --tick-work``), in the runtime's pattern (self-clocked when the runtime is;
 lockstep within the default window). It is information, not a target: what the bus and the
 fleet's work cost together here, a floor for any runtime with that fleet, and the last lines
