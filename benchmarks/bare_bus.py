@@ -35,9 +35,9 @@ an agent's own tick work (``Agent.tick_work`` of a ``benchmarks/agent_tick.py`` 
 Frisbee on ``sim://`` with its waypoint controller, the integrator with consensus, or the
 spring-mass-damper) before it answers (in its bus callback, or on its clock thread when
 self-clocked), with the newest outputs it heard from its neighbours (its tick path rehearsed
-first, as an agent's is). No worker thread, tick
-engine, manager accounting or recording: what the bus and that work cost together on this
-machine, a floor for any runtime doing the work (``swarm_ticks.py --work-floor``).
+first, as an agent's is). No worker thread, tick engine, manager accounting or recording: what
+the bus and that work cost together on this machine, a floor for any runtime doing the work
+(``swarm_ticks.py --work-floor``).
 """
 
 from __future__ import annotations
