@@ -10,6 +10,7 @@ and the fraction of late ticks. Lockstep mode: speed as a multiple of real time.
     python benchmarks/swarm_ticks.py --agents 32 --rates 100 --vehicle simulated
     python benchmarks/swarm_ticks.py --agents 16 32 --rates 100 --seconds 4 --realtime-clock both
     python benchmarks/swarm_ticks.py --work-floor --settle-load 0.9   # each with its work floor
+    python benchmarks/swarm_ticks.py --no-realtime --work-floor --settle-load 0.9  # lockstep alone
 
 ``--realtime-clock`` picks how realtime runs keep time (the experiment's ``realtime_clock``):
 ``shared`` (the default, as ``hilswarm run``: the agents keep the manager's schedule
@@ -573,6 +574,31 @@ def floor_lines(
     return lines
 
 
+def plan(args: argparse.Namespace) -> list[tuple[str, int, float, float]]:
+    """The configurations a run measures, in order: ``(mode, agents, rate [Hz], seconds)``.
+
+    ``seconds`` is the run length [s]: wall time in realtime, experiment time in lockstep.
+    Realtime: ``--short`` 8 agents at 50 Hz (4 s), ``--agents``/``--rates`` a grid, else the
+    targets' sizes; none with ``--no-realtime``. Lockstep: 8 agents at 100 Hz for
+    ``--lockstep-seconds`` (default 30, 5 with ``--short``); none with ``--no-lockstep``.
+    """
+    seconds, lockstep_seconds = (4.0, 5.0) if args.short else (args.seconds, 30.0)
+    if args.lockstep_seconds is not None:
+        lockstep_seconds = args.lockstep_seconds
+    if args.no_realtime:
+        realtime: list[tuple[int, float]] = []
+    elif args.short:
+        realtime = [(8, 50.0)]
+    elif args.agents or args.rates:
+        realtime = [(n, rate) for n in args.agents or [16] for rate in args.rates or [100.0]]
+    else:
+        realtime = list(REALTIME_TARGETS)
+    configs = [("realtime", n, rate, seconds) for n, rate in realtime]
+    if not args.no_lockstep:
+        configs.append(("lockstep", 8, 100.0, lockstep_seconds))
+    return configs
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -603,7 +629,15 @@ def main(argv: list[str] | None = None) -> int:
         help="realtime runs: agents keeping the manager's schedule on the shared monotonic "
         "clock (default, as hilswarm run), tick messages from the manager, or both (paired)",
     )  # fmt: skip
-    parser.add_argument("--no-lockstep", action="store_true")
+    parser.add_argument("--no-lockstep", action="store_true", help="skip the lockstep run")
+    parser.add_argument(
+        "--no-realtime", action="store_true",
+        help="skip the realtime runs (lockstep only: the CPU-bound target, quickest to pair)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--lockstep-seconds", type=float, metavar="S",
+        help="lockstep experiment length [s] (default 30, 5 with --short)",
+    )  # fmt: skip
     parser.add_argument(
         "--settle-load", type=float, metavar="LOAD",
         help="before each run, wait (up to 4 min) until the 1-minute load average is below LOAD",
@@ -618,19 +652,18 @@ def main(argv: list[str] | None = None) -> int:
         "floor for any runtime with that fleet here; the targets keep the bare bus)",
     )  # fmt: skip
     args = parser.parse_args(argv)
+    if args.no_realtime and args.no_lockstep:
+        parser.error("--no-realtime and --no-lockstep leave nothing to run")
+    if args.lockstep_seconds is not None and not args.lockstep_seconds > 0:
+        parser.error("--lockstep-seconds must be > 0")
     os.environ["ZENOH_RUNTIME"] = bus.LEAN_RUNTIME if args.zenoh_runtime == "lean" else "()"
-    lockstep_seconds = 30.0
-    if args.short:
-        realtime = [(8, 50.0)]
-        args.seconds, lockstep_seconds = 4.0, 5.0
-    elif args.agents or args.rates:
-        realtime = [(n, rate) for n in args.agents or [16] for rate in args.rates or [100.0]]
-    else:
-        realtime = list(REALTIME_TARGETS)
+    configs = plan(args)
+    lengths = {mode: f"{seconds:g} s" for mode, _n, _rate, seconds in configs}
     fleets = ["frisbee", "simulated"] if args.vehicle == "both" else [args.vehicle]
     print(
         f"fleets {', '.join(fleets)}; recording: {args.record}; zenoh runtime: "
-        f"{args.zenoh_runtime}; realtime runs of {args.seconds:g} s; {os.cpu_count()} CPUs; "
+        f"{args.zenoh_runtime}; realtime runs of {lengths.get('realtime', 'none')}, lockstep of "
+        f"{lengths.get('lockstep', 'none')} of experiment; {os.cpu_count()} CPUs; "
         f"python {platform.python_version()} ({os.path.realpath(sys.executable)})\n"
         "p50/p99: tick completion (scheduled time to last y_k in; a late tick counts as inf);\n"
         "mgr/agt/rec ms: CPU per tick of the orchestrator process (Zenoh router included), of "
@@ -645,9 +678,6 @@ def main(argv: list[str] | None = None) -> int:
     baselines: dict[tuple[str, int, float], BareResult] = {}
     floors: dict[tuple[str, str, int, float], BareResult] = {}
     for vehicle in fleets:
-        configs = [("realtime", n, rate, args.seconds) for n, rate in realtime]
-        if not args.no_lockstep:
-            configs.append(("lockstep", 8, 100.0, lockstep_seconds))
         for mode, n, rate, seconds in configs:
             if not args.no_baseline and (mode, n, rate) not in baselines:
                 settle(args.settle_load)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 from types import ModuleType
@@ -119,3 +120,40 @@ def test_the_work_floor_s_rows_json_and_lines(swarm_ticks: ModuleType) -> None:
         "[frisbee] lockstep 8 @ 100 Hz: 6.0x against the work floor's 10.0x (ratio 0.60)",
     ]
     assert swarm_ticks.floor_lines([runtime(swarm_ticks, [])], {}) == []
+
+
+def plan_of(swarm_ticks: ModuleType, **given: Any) -> list[tuple[str, int, float, float]]:
+    """The configurations a run with these options measures (the defaults of ``main``)."""
+    options = dict(short=False, agents=None, rates=None, seconds=10.0, no_lockstep=False,
+                   no_realtime=False, lockstep_seconds=None)  # fmt: skip
+    options.update(given)
+    return swarm_ticks.plan(argparse.Namespace(**options))
+
+
+def test_the_plan_of_a_run_from_its_options(swarm_ticks: ModuleType) -> None:
+    targets = [("realtime", n, rate, 10.0) for n, rate in swarm_ticks.REALTIME_TARGETS]
+    assert plan_of(swarm_ticks) == [*targets, ("lockstep", 8, 100.0, 30.0)]
+    assert plan_of(swarm_ticks, short=True) == [
+        ("realtime", 8, 50.0, 4.0),
+        ("lockstep", 8, 100.0, 5.0),
+    ]
+    assert plan_of(swarm_ticks, no_realtime=True, lockstep_seconds=12.5) == [
+        ("lockstep", 8, 100.0, 12.5)
+    ]
+    assert plan_of(swarm_ticks, agents=[4], rates=[20.0, 40.0], no_lockstep=True) == [
+        ("realtime", 4, 20.0, 10.0),
+        ("realtime", 4, 40.0, 10.0),
+    ]
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["--no-realtime", "--no-lockstep"], ["--lockstep-seconds", "0"]],
+)
+def test_options_that_leave_nothing_to_run_are_refused(
+    swarm_ticks: ModuleType, argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        swarm_ticks.main(argv)
+    assert exc.value.code == 2
+    assert "--" in capsys.readouterr().err
