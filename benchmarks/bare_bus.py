@@ -38,6 +38,12 @@ self-clocked), with the newest outputs it heard from its neighbours (its tick pa
 first, as an agent's is). No worker thread, tick engine, manager accounting or recording: what
 the bus and that work cost together on this machine, a floor for any runtime doing the work
 (``swarm_ticks.py --work-floor``).
+
+``--spin-us US`` (any pattern) has each client burn ``US`` µs of its own thread's CPU time
+before each answer: work of a known cost, hot (a tight loop that touches no data and evicts
+nothing), so the speed it leaves bounds from above what any real work of that CPU cost could
+leave. ``benchmarks/work_budget.py`` sweeps it: how much work per tick a client can do and
+keep a given share of the bare bus's lockstep speed.
 """
 
 from __future__ import annotations
@@ -109,6 +115,16 @@ _START = struct.Struct("<dd")
 TICK_WORK_CASES = ("frisbee", "consensus", "smd")
 
 
+def spin(seconds: float) -> None:
+    """Burn ``seconds`` [s] of this thread's CPU time (``time.thread_time``) in a tight loop:
+    work of a known CPU cost that neither waits nor touches data (``--spin-us``). Time the
+    thread spends preempted does not count."""
+    clock = time.thread_time
+    end = clock() + seconds
+    while clock() < end:
+        pass
+
+
 class TickWork:
     """One agent's own tick work (``Agent.tick_work``: controller, vehicle, board, sensing,
     encoding) run by a bare client before each answer, for ``--tick-work``.
@@ -146,10 +162,13 @@ class TickWork:
         return y_payload, report
 
 
-def client(index: int, n: int, endpoint: str, pattern: str, tick_work: str = "") -> None:
+def client(
+    index: int, n: int, endpoint: str, pattern: str, tick_work: str = "", *, spin_s: float = 0.0
+) -> None:
     """One client process; ``pattern``: ``tick`` (realtime), ``barrier`` (lockstep, answering
     each tick as ``tick`` does), ``clock`` or ``window`` (see the module doc); ``tick_work``: a
-    :class:`TickWork` case run before each answer (empty: none)."""
+    :class:`TickWork` case run before each answer (empty: none); ``spin_s``: CPU time [s]
+    burnt before each answer (:func:`spin`; 0: none)."""
     keys = bus.BusKeys("bare")
     if pattern in ("barrier", "window"):  # lockstep: batch work, as the runtime's agents
         use_batch_scheduling()
@@ -165,6 +184,8 @@ def client(index: int, n: int, endpoint: str, pattern: str, tick_work: str = "")
     stop = threading.Event()
 
     def answer(k: int, t: float) -> None:
+        if spin_s > 0:
+            spin(spin_s)
         if work is None:
             publisher.put(bus.encode_vector(k, t, _Y_VALUES), attachment=_REPORT)
             return
@@ -244,16 +265,20 @@ def run_bare(
     window: int = 0,
     unix: bool = False,
     tick_work: str = "",
+    spin_us: float = 0.0,
 ) -> BareResult:
     """Start the router and ``n`` client processes, tick, and return the figures.
 
     ``self_clocked`` (realtime only): clients keep the schedule themselves. ``window`` > 0
     (lockstep only): free-running clients within a released horizon instead of a barrier.
     ``tick_work``: each client runs that case's agent tick work before each answer
-    (:class:`TickWork`; empty: none, the plain bare bus).
+    (:class:`TickWork`; empty: none, the plain bare bus). ``spin_us``: each client burns that
+    much of its CPU time [µs] before each answer (:func:`spin`; 0: none).
     """
     if tick_work and tick_work not in TICK_WORK_CASES:
         raise ValueError(f"tick_work {tick_work!r}: expected one of {TICK_WORK_CASES}")
+    if not spin_us >= 0:
+        raise ValueError(f"spin_us {spin_us!r}: expected a CPU time >= 0 [µs]")
     if self_clocked and lockstep:
         raise ValueError("self_clocked is a realtime pattern; window is the lockstep one")
     if window and not lockstep:
@@ -336,6 +361,8 @@ def run_bare(
     command = [sys.executable, os.path.abspath(__file__)]
     if tick_work:
         command += ["--tick-work", tick_work]
+    if spin_us:
+        command += ["--spin-us", repr(float(spin_us))]
     clients = [
         subprocess.Popen(
             [*command, "--client", str(i), str(n), endpoint, pattern], stdin=subprocess.PIPE
@@ -426,13 +453,23 @@ def main(argv: list[str] | None = None) -> int:
         "(rehearsed first): what the bus and that work cost together, a floor for a runtime",
     )
     parser.add_argument(
+        "--spin-us",
+        type=float,
+        default=0.0,
+        metavar="US",
+        help="each client also burns US µs of its CPU time before each answer (hot work of a "
+        "known cost; benchmarks/work_budget.py sweeps it)",
+    )
+    parser.add_argument(
         "--short", action="store_true", help="CI-sized: each pattern, 8 clients at 50 Hz"
     )
     args = parser.parse_args(argv)
     if args.client:
         index, n, endpoint, pattern = args.client
-        client(int(index), int(n), endpoint, pattern, args.tick_work)
+        client(int(index), int(n), endpoint, pattern, args.tick_work, spin_s=args.spin_us * 1e-6)
         return 0
+    if not args.spin_us >= 0:
+        parser.error(f"--spin-us {args.spin_us}: expected a CPU time >= 0 [µs]")
     if args.self_clocked and args.lockstep:
         parser.error("--self-clocked is a realtime pattern (use --window with --lockstep)")
     if args.window and not args.lockstep:
@@ -453,17 +490,28 @@ def main(argv: list[str] | None = None) -> int:
         ]  # fmt: skip
         n, rate = args.agents, args.rate
     for options in runs:
-        result = run_bare(n=n, rate_hz=rate, unix=args.unix, tick_work=args.tick_work, **options)
+        result = run_bare(n=n, rate_hz=rate, unix=args.unix, tick_work=args.tick_work,
+                          spin_us=args.spin_us, **options)  # fmt: skip
         print(describe(result, self_clocked=bool(options["self_clocked"]),
-                       window=int(options["window"]), tick_work=args.tick_work))  # fmt: skip
+                       window=int(options["window"]), tick_work=args.tick_work,
+                       spin_us=args.spin_us))  # fmt: skip
     return 0
 
 
-def describe(result: BareResult, *, self_clocked: bool, window: int, tick_work: str = "") -> str:
+def describe(
+    result: BareResult,
+    *,
+    self_clocked: bool,
+    window: int,
+    tick_work: str = "",
+    spin_us: float = 0.0,
+) -> str:
     """One line of figures for a run: its timing, one client's CPU per tick, the machine's
     CPUs busy while it ticked and the 1-minute load at its end."""
     p50, p99 = result.percentiles_ms()
     what = f"bare bus + {tick_work} tick work" if tick_work else "bare bus"
+    if spin_us:
+        what += f" + {spin_us:g} µs spin"
     head = f"{result.n} clients at {result.rate_hz:g} Hz"
     cpu = (f"; client {result.client_cpu_s * 1e3:.3f} ms of CPU per tick, "
            f"{100 * result.cpu_busy:.0f} % busy, load {os.getloadavg()[0]:.2f}")  # fmt: skip

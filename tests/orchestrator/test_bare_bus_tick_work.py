@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from types import ModuleType
 
@@ -55,3 +56,27 @@ def test_a_lockstep_bare_bus_with_frisbee_work_completes_every_tick(
     assert result.client_cpu_s > 0
     line = bare_bus.describe(result, self_clocked=False, window=0, tick_work="frisbee")
     assert line.startswith("bare bus + frisbee tick work, lockstep barrier, 3 clients")
+
+
+def test_spin_burns_at_least_the_cpu_time_asked(bare_bus: ModuleType) -> None:
+    before = time.thread_time()
+    bare_bus.spin(0.002)
+    assert time.thread_time() - before >= 0.002
+
+
+def test_a_negative_spin_is_refused_before_anything_starts(bare_bus: ModuleType) -> None:
+    with pytest.raises(ValueError, match="CPU time >= 0"):
+        bare_bus.run_bare(n=2, rate_hz=100.0, seconds=0.1, lockstep=True, spin_us=-1.0)
+
+
+def test_a_lockstep_bare_bus_with_spin_completes_and_pays_for_it(bare_bus: ModuleType) -> None:
+    """Three real client processes in the runtime's window pattern, each burning 300 µs of its
+    CPU before each answer: every tick completes, and each client's CPU per tick holds the
+    spin (a lower bound: the spin counts the thread's CPU time, not the wall clock)."""
+    result = bare_bus.run_bare(n=3, rate_hz=100.0, seconds=0.3, lockstep=True, window=8,
+                               spin_us=300.0)  # fmt: skip
+    assert result.ticks == 30
+    assert result.speed > 0
+    assert result.client_cpu_s >= 300e-6
+    line = bare_bus.describe(result, self_clocked=False, window=8, spin_us=300.0)
+    assert line.startswith("bare bus + 300 µs spin, lockstep window 8, 3 clients")
