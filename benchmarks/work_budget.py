@@ -32,7 +32,8 @@ Every run prints one JSON line, and the end one summary line; the keys are stabl
 ``share`` is the run's speed over the mean speed of its round's runs with no spin (about 1
 for those); ``budget_us`` is the largest spin measured when every level keeps the fraction (a
 lower bound then: the closing line says so); ``frisbee_hot_us`` the Frisbee's tick work [µs
-of CPU per tick, hot]; ``bare_speed`` the median speed with no spin (x real time).
+of CPU per tick, hot], measured first, and ``load_1min`` the load then; ``bare_speed`` the
+median speed with no spin (x real time).
 """
 
 from __future__ import annotations
@@ -121,7 +122,8 @@ def level_json(level: Level, share: float) -> str:
 def summary_lines(
     levels: list[Level], fraction: float, hot_us: float, load: float
 ) -> tuple[list[str], str]:
-    """The closing lines and the summary JSON line of a sweep."""
+    """The closing lines and the summary JSON line of a sweep; ``load``: the 1-minute load
+    when the Frisbee's tick work was measured."""
     share_at = shares(levels)
     value, bounded = budget(share_at, fraction)
     bare_speed = statistics.median(lvl.result.speed for lvl in levels if lvl.spin_us == 0)
@@ -178,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     )  # fmt: skip
     parser.add_argument(
         "--settle-load", type=float, metavar="LOAD",
-        help="before each round, wait (up to 4 min) until the 1-minute load is below LOAD",
+        help="before each run, wait (up to 4 min) until the 1-minute load is below LOAD",
     )  # fmt: skip
     args = parser.parse_args(argv)
     spins = args.spins or ([40.0] if args.short else [10.0, 20.0, 40.0, 60.0, 80.0])
@@ -193,10 +195,15 @@ def main(argv: list[str] | None = None) -> int:
         f"{seconds:g} s of experiment per run; each client burns the given CPU time per tick",
         flush=True,
     )
+    settle(args.settle_load)
+    hot_load = os.getloadavg()[0]
+    hot_us = frisbee_hot_us(500 if args.short else 5000)  # first: the machine at its quietest
+    print(f"a Frisbee agent's tick work, hot in this process: {hot_us:.1f} µs of CPU per tick "
+          f"(load {hot_load:.2f})", flush=True)  # fmt: skip
     for round_ in range(rounds):
-        settle(args.settle_load)
         order = [0.0, *(spin for spin in spins if spin != 0), 0.0]
         for spin in order:
+            settle(args.settle_load)
             load = os.getloadavg()[0]
             result = run_bare(n=args.agents, rate_hz=args.rate, seconds=seconds, lockstep=True,
                               window=WINDOW, spin_us=spin)  # fmt: skip
@@ -211,9 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         zero = statistics.fmean(level.result.speed for level in run if not level.spin_us)
         for level in run:
             print(level_json(level, level.result.speed / zero), flush=True)
-    load = os.getloadavg()[0]
-    hot_us = frisbee_hot_us(500 if args.short else 5000)
-    lines, summary = summary_lines(levels, args.fraction, hot_us, load)
+    lines, summary = summary_lines(levels, args.fraction, hot_us, hot_load)
     for line in lines:
         print(line)
     print(summary)
