@@ -15,7 +15,8 @@ processes' (docs/agent_tick.md), so it leaves less.
 
 Beside it, in the same run, the Frisbee fleet's own tick work (``benchmarks/agent_tick.py``'s
 case: ``Agent.tick_work`` with its neighbours' messages, hot, in this process, CPU time per
-tick): what that fleet needs per tick at the very least, before any runtime.
+tick): what that fleet needs per tick at the very least, before any runtime; and the other
+two cases' (the integrator fleet's consensus, the spring-mass-damper).
 
     python benchmarks/work_budget.py             # 0-80 µs, 2 rounds, 20 s of experiment each
     python benchmarks/work_budget.py --short     # CI-sized (< 40 s)
@@ -27,13 +28,14 @@ Every run prints one JSON line, and the end one summary line; the keys are stabl
     {"kind": "work_budget", "round", "spin_us", "speed", "share", "client_cpu_ms",
      "cpu_busy", "load_1min"}
     {"kind": "work_budget_summary", "fraction", "budget_us", "frisbee_hot_us",
-     "bare_speed", "load_1min"}
+     "bare_speed", "load_1min", "cases_hot_us"}
 
 ``share`` is the run's speed over the mean speed of its round's runs with no spin (about 1
 for those); ``budget_us`` is the largest spin measured when every level keeps the fraction (a
 lower bound then: the closing line says so); ``frisbee_hot_us`` the Frisbee's tick work [µs
 of CPU per tick, hot], measured first, and ``load_1min`` the load then; ``bare_speed`` the
-median speed with no spin (x real time).
+median speed with no spin (x real time); ``cases_hot_us`` every ``agent_tick.py`` case's hot
+tick work by name (``frisbee``, ``consensus``: the integrator fleet, ``smd``) [µs].
 """
 
 from __future__ import annotations
@@ -95,13 +97,13 @@ def budget(share_at: dict[float, float], fraction: float) -> tuple[float, bool]:
     return last_kept[0], False
 
 
-def frisbee_hot_us(ticks: int) -> float:
-    """A Frisbee agent's own tick work, hot, in this process [µs of CPU per tick]: the
-    ``agent_tick.py`` case (its neighbours' messages received, ``Agent.tick_work``)."""
+def hot_ticks_us(ticks: int) -> dict[str, float]:
+    """Each ``agent_tick.py`` case's own tick work, hot, in this process [µs of CPU per tick]
+    (its neighbours' messages received, ``Agent.tick_work``): ``frisbee`` (the target's
+    fleet), ``consensus`` (the integrator fleet) and ``smd`` (the lightest: no neighbours)."""
     from agent_tick import cases, measure, tick_loop  # noqa: PLC0415 - an agent's imports
 
-    case = {case.name: case for case in cases()}["frisbee"]
-    return measure(tick_loop(case), ticks, 5) * 1e6
+    return {case.name: measure(tick_loop(case), ticks, 5) * 1e6 for case in cases()}
 
 
 def level_json(level: Level, share: float) -> str:
@@ -120,10 +122,10 @@ def level_json(level: Level, share: float) -> str:
 
 
 def summary_lines(
-    levels: list[Level], fraction: float, hot_us: float, load: float
+    levels: list[Level], fraction: float, hot_us: dict[str, float], load: float
 ) -> tuple[list[str], str]:
-    """The closing lines and the summary JSON line of a sweep; ``load``: the 1-minute load
-    when the Frisbee's tick work was measured."""
+    """The closing lines and the summary JSON line of a sweep; ``hot_us``: each case's hot
+    tick work [µs] (:func:`hot_ticks_us`); ``load``: the 1-minute load when it was measured."""
     share_at = shares(levels)
     value, bounded = budget(share_at, fraction)
     bare_speed = statistics.median(lvl.result.speed for lvl in levels if lvl.spin_us == 0)
@@ -132,28 +134,31 @@ def summary_lines(
         for spin, share in share_at.items()
     ]
     percent = f"{100 * fraction:.0f} %"
+    frisbee = hot_us["frisbee"]
+    lightest = min(hot_us, key=hot_us.__getitem__)
     if not bounded:
         lines.append(f"budget: at least {value:g} µs (every level kept {percent}; "
                      "measure larger spins)")  # fmt: skip
     else:
         verdict = (
             "the Frisbee fleet's own tick work alone is over it, before any runtime cost"
-            if hot_us > value
+            if frisbee > value
             else "the Frisbee fleet's own tick work is within it"
         )
         lines.append(
             f"budget: a client keeps {percent} of the bare bus's lockstep speed "
             f"({bare_speed:.1f}x) with at most {value:.0f} µs of hot CPU work per tick; a "
-            f"Frisbee agent's tick work costs {hot_us:.0f} µs hot in this process: {verdict} "
-            f"(load {load:.2f})"
+            f"Frisbee agent's tick work costs {frisbee:.0f} µs hot in this process: {verdict}; "
+            f"the lightest case ({lightest}) {hot_us[lightest]:.0f} µs (load {load:.2f})"
         )
     summary = json.dumps({
         "kind": "work_budget_summary",
         "fraction": fraction,
         "budget_us": round(value, 1),
-        "frisbee_hot_us": round(hot_us, 1),
+        "frisbee_hot_us": round(frisbee, 1),
         "bare_speed": round(bare_speed, 3),
         "load_1min": round(load, 2),
+        "cases_hot_us": {name: round(us, 1) for name, us in hot_us.items()},
     })  # fmt: skip
     return lines, summary
 
@@ -197,8 +202,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     settle(args.settle_load)
     hot_load = os.getloadavg()[0]
-    hot_us = frisbee_hot_us(500 if args.short else 5000)  # first: the machine at its quietest
-    print(f"a Frisbee agent's tick work, hot in this process: {hot_us:.1f} µs of CPU per tick "
+    hot_us = hot_ticks_us(500 if args.short else 5000)  # first: the machine at its quietest
+    ticks = ", ".join(f"{name} {us:.1f}" for name, us in hot_us.items())
+    print(f"each case's tick work, hot in this process [µs of CPU per tick]: {ticks} "
           f"(load {hot_load:.2f})", flush=True)  # fmt: skip
     for round_ in range(rounds):
         order = [0.0, *(spin for spin in spins if spin != 0), 0.0]

@@ -65,19 +65,23 @@ def test_a_round_without_a_run_without_spin_is_an_error(work_budget: ModuleType)
         work_budget.shares([run(work_budget, 0, 40.0, 10.0)])
 
 
-@pytest.mark.parametrize(("hot_us", "words"), [(53.0, "alone is over it"), (20.0, "within it")])
+@pytest.mark.parametrize(("frisbee", "words"), [(53.0, "alone is over it"), (20.0, "within it")])
 def test_the_summary_sets_the_budget_against_the_frisbee_tick(
-    work_budget: ModuleType, hot_us: float, words: str
+    work_budget: ModuleType, frisbee: float, words: str
 ) -> None:
+    hot_us = {"frisbee": frisbee, "consensus": 33.0, "smd": 19.0}
     levels = [run(work_budget, 0, 0.0, 20.0), run(work_budget, 0, 40.0, 10.0),
               run(work_budget, 0, 0.0, 20.0)]  # fmt: skip
     lines, summary = work_budget.summary_lines(levels, 0.75, hot_us, 0.4)
     assert "spin 40 µs: 50 %" in lines[1]
     assert "at most 20 µs of hot CPU work per tick" in lines[-1]
     assert words in lines[-1]
+    assert lines[-1].endswith("the lightest case (smd) 19 µs (load 0.40)")
     figures = json.loads(summary)
     assert list(figures) == ["kind", "fraction", "budget_us", "frisbee_hot_us", "bare_speed",
-                             "load_1min"]  # fmt: skip
+                             "load_1min", "cases_hot_us"]  # fmt: skip
+    assert figures["frisbee_hot_us"] == frisbee
+    assert figures["cases_hot_us"] == hot_us
     assert figures["kind"] == "work_budget_summary"
     assert figures["budget_us"] == pytest.approx(20.0)
     assert figures["bare_speed"] == pytest.approx(20.0)
