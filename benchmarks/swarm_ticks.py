@@ -409,6 +409,14 @@ def settle(max_load: float | None, timeout_s: float = 240.0) -> None:
         time.sleep(5.0)
 
 
+def add_settle_option(parser: argparse.ArgumentParser) -> None:
+    """``--settle-load LOAD``: :func:`settle` before each run (the benchmarks' one wording)."""
+    parser.add_argument(
+        "--settle-load", type=float, metavar="LOAD",
+        help="before each run, wait (up to 4 min) until the 1-minute load average is below LOAD",
+    )  # fmt: skip
+
+
 #: Realtime configurations of the issue's targets: (agents, rate [Hz]).
 REALTIME_TARGETS = ((16, 100.0), (32, 100.0), (64, 50.0))
 #: Realtime: the runtime's late fraction may exceed its baseline's by this much [fraction].
@@ -638,10 +646,7 @@ def main(argv: list[str] | None = None) -> int:
         "--lockstep-seconds", type=float, metavar="S",
         help="lockstep experiment length [s] (default 30, 5 with --short)",
     )  # fmt: skip
-    parser.add_argument(
-        "--settle-load", type=float, metavar="LOAD",
-        help="before each run, wait (up to 4 min) until the 1-minute load average is below LOAD",
-    )  # fmt: skip
+    add_settle_option(parser)
     parser.add_argument(
         "--no-baseline", action="store_true", help="skip the bare-bus baseline runs"
     )

@@ -49,7 +49,7 @@ from dataclasses import dataclass
 
 from bare_bus import BareResult, run_bare
 from hilswarm.agents.agent_config import DEFAULT_LOCKSTEP_WINDOW as WINDOW
-from swarm_ticks import LOCKSTEP_FRACTION, settle
+from swarm_ticks import LOCKSTEP_FRACTION, add_settle_option, settle
 
 
 @dataclass(frozen=True)
@@ -183,10 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         "--fraction", type=float, default=LOCKSTEP_FRACTION,
         help="share of the bare bus's speed to keep (the target's: 0.75)",
     )  # fmt: skip
-    parser.add_argument(
-        "--settle-load", type=float, metavar="LOAD",
-        help="before each run, wait (up to 4 min) until the 1-minute load is below LOAD",
-    )  # fmt: skip
+    add_settle_option(parser)
     args = parser.parse_args(argv)
     spins = args.spins or ([40.0] if args.short else [10.0, 20.0, 40.0, 60.0, 80.0])
     rounds, seconds = (1, 5.0) if args.short else (args.rounds, args.seconds)
