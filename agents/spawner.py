@@ -20,8 +20,16 @@ hilswarm.agents.spawner``), one JSON object per line:
   ``sys.path`` and ``PYTHONPATH`` (the experiment's folder, for a user's classes: the server
   can then start before the experiment is known); the server answers ``{"pid": P}`` (or
   ``{"error": "..."}``);
-* server -> launcher: ``{"exit": P, "code": C}`` when child ``P`` ended (``C`` as
+* server -> launcher: ``{"ready": true}`` once, when its preload imports are done (before
+  it reads any request); ``{"exit": P, "code": C}`` when child ``P`` ended (``C`` as
   :attr:`subprocess.Popen.returncode`: negative for a signal).
+
+A request may be sent before ``ready``: the server reads it after its imports. The launcher
+waits for ``ready`` up to :data:`READY_TIMEOUT_S` (the imports read and compile the agent
+code: ~1 s of CPU on a 2-core development machine, seconds more when its disk cache went cold,
+and a benchmark's first fork once waited over 10 s for them), then for each answer up to
+:data:`SPAWN_TIMEOUT_S`; a server that exits during its imports (a module that fails to
+import) is reported at once.
 
 The launcher's ends are :class:`ForkedProcess` objects with the part of
 :class:`subprocess.Popen`'s interface the launcher uses (``pid``, ``returncode``, ``poll``,
@@ -71,8 +79,10 @@ def with_import_paths(pythonpath: str, folders: Sequence[str]) -> str:
     return os.pathsep.join([*folders, *inherited])
 
 
-#: Bound on the server's answer to one request [s].
+#: Bound on the server's answer to one request once it is ready [s].
 SPAWN_TIMEOUT_S = 10.0
+#: Bound on the server's preload imports, before its first answer [s].
+READY_TIMEOUT_S = 120.0
 #: Exit code reported for a child whose status was lost with the server.
 UNKNOWN_EXIT = 255
 
@@ -160,6 +170,7 @@ class ForkServer:
         self._children: dict[int, ForkedProcess] = {}
         self._early_exits: dict[int, int] = {}
         self._asked = False  # no fork asked for yet: close() may end the server at once
+        self._ready = threading.Event()  # imports done (or the server gone: check ``gone``)
         try:
             self._process = subprocess.Popen(
                 [python, "-m", "hilswarm.agents.spawner", *(preload or agent_preload())],
@@ -192,6 +203,11 @@ class ForkServer:
                 self._process.stdin.flush()
             except OSError as exc:
                 raise SpawnError(f"the agent fork server is gone: {exc}") from exc
+            if not self._ready.wait(READY_TIMEOUT_S):
+                raise SpawnError(
+                    f"the agent fork server did not finish importing the agent code within "
+                    f"{READY_TIMEOUT_S:g} s"
+                )
             try:
                 reply = get_within(self._replies, SPAWN_TIMEOUT_S)
             except queue.Empty:
@@ -229,7 +245,9 @@ class ForkServer:
             except ValueError:
                 logger.warning("fork server: unreadable line %r", line[:80])
                 continue
-            if "pid" in message:
+            if "ready" in message:
+                self._ready.set()
+            elif "pid" in message:
                 child = ForkedProcess(int(message["pid"]), self)
                 self._children[child.pid] = child
                 if child.pid in self._early_exits:
@@ -245,6 +263,7 @@ class ForkServer:
                     self._early_exits[pid] = code
         self.gone = True
         self._replies.put("the agent fork server exited")
+        self._ready.set()  # a spawn waiting for the imports finds the exit in its replies
         for child in list(self._children.values()):
             child._check_orphan()
 
@@ -292,21 +311,22 @@ def _exit_code(status: int) -> int:
 
 def serve(preload: Sequence[str]) -> int:
     """The server loop: fork on each request line, report each child's exit."""
-    for module in preload:
-        importlib.import_module(module)
-    wake_r, wake_w = os.pipe()
-    os.set_blocking(wake_w, False)
-    signal.set_wakeup_fd(wake_w)
-    signal.signal(signal.SIGCHLD, lambda *_: None)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the launcher stops the server (stdin EOF)
     out = sys.stdout.buffer
-    buffer = b""
-    open_input = True
 
     def send(message: Mapping[str, Any]) -> None:
         out.write(json.dumps(message).encode() + b"\n")
         out.flush()
 
+    for module in preload:
+        importlib.import_module(module)
+    send({"ready": True})
+    wake_r, wake_w = os.pipe()
+    os.set_blocking(wake_w, False)
+    signal.set_wakeup_fd(wake_w)
+    signal.signal(signal.SIGCHLD, lambda *_: None)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the launcher stops the server (stdin EOF)
+    buffer = b""
+    open_input = True
     while open_input:
         readable, _, _ = select.select([0, wake_r], [], [])
         if wake_r in readable:

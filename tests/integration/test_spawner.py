@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from hilswarm.agents import spawner
 from hilswarm.agents.spawner import UNKNOWN_EXIT, ForkServer, SpawnError
 from hilswarm.orchestrator.launcher import AgentLauncher
 
@@ -141,3 +142,58 @@ def test_an_unused_server_is_ended_at_once(tmp_path: Path) -> None:
     assert fork_server._process.returncode == -signal.SIGTERM
     assert time.monotonic() - began < 5
     fork_server.close()  # idempotent
+
+
+def slow_server(tmp_path: Path, import_s: float, *, fail: bool = False) -> ForkServer:
+    """A server whose preload import takes ``import_s`` seconds (then raises, with ``fail``):
+    a slow machine's import of the agent code, or a module that cannot import."""
+    (tmp_path / "toychild.py").write_text(CHILD, encoding="utf-8")
+    body = f"import time\ntime.sleep({import_s!r})\n"
+    if fail:
+        body += "raise ImportError('the agent code cannot import')\n"
+    (tmp_path / "slowimport.py").write_text(body, encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    return ForkServer(env=env, preload=["slowimport", "toychild"])
+
+
+def test_a_slow_import_does_not_count_against_the_answer_s_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The first fork waits for the server's imports (bounded by ``READY_TIMEOUT_S``), not
+    within the bound on one answer: a server importing for longer than that bound still
+    starts its first child, and later ones."""
+    monkeypatch.setattr(spawner, "SPAWN_TIMEOUT_S", 0.5)
+    fork_server = slow_server(tmp_path, 2.0)
+    try:
+        first = fork_server.spawn("toychild", [str(tmp_path / "a"), "exit", "3"], title="a")
+        second = fork_server.spawn("toychild", [str(tmp_path / "b"), "exit", "4"], title="b")
+        assert (first.wait(20), second.wait(20)) == (3, 4)
+    finally:
+        fork_server.close()
+
+
+def test_a_server_that_never_finishes_importing_is_reported_within_its_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(spawner, "READY_TIMEOUT_S", 0.5)
+    fork_server = slow_server(tmp_path, 60.0)
+    began = time.monotonic()
+    try:
+        with pytest.raises(SpawnError, match="did not finish importing the agent code within"):
+            fork_server.spawn("toychild", [str(tmp_path / "a"), "exit", "0"], title="a")
+        assert time.monotonic() - began < 10
+    finally:
+        fork_server.close(timeout_s=2.0)
+    assert fork_server._process.returncode is not None  # ended, not left behind
+
+
+def test_a_server_whose_import_fails_is_reported_at_once(tmp_path: Path) -> None:
+    """No wait for the whole import bound: the server's exit ends the wait."""
+    fork_server = slow_server(tmp_path, 0.0, fail=True)
+    began = time.monotonic()
+    try:
+        with pytest.raises(SpawnError, match="exited"):
+            fork_server.spawn("toychild", [str(tmp_path / "a"), "exit", "0"], title="a")
+        assert time.monotonic() - began < 30
+    finally:
+        fork_server.close()
