@@ -62,18 +62,25 @@ class Level:
     load_1min: float
 
 
+def round_shares(runs: list[Level]) -> list[float]:
+    """Each run's share of the bare bus's speed: its speed over the mean speed of the runs with
+    no spin among ``runs`` (one round)."""
+    zero = [level.result.speed for level in runs if level.spin_us == 0]
+    if not zero:
+        rounds = ", ".join(str(r) for r in sorted({level.round for level in runs}))
+        raise ValueError(f"round {rounds} has no run without spin to compare with")
+    base = statistics.fmean(zero)
+    return [level.result.speed / base for level in runs]
+
+
 def shares(levels: list[Level]) -> dict[float, float]:
-    """Median share of the bare bus's speed at each spin [µs]: each run's speed over the mean
-    speed of its round's runs with no spin."""
+    """Median share of the bare bus's speed at each spin [µs] over the rounds
+    (:func:`round_shares` of each)."""
     by_spin: dict[float, list[float]] = {}
     for round_ in sorted({level.round for level in levels}):
         runs = [level for level in levels if level.round == round_]
-        zero = [level.result.speed for level in runs if level.spin_us == 0]
-        if not zero:
-            raise ValueError(f"round {round_} has no run without spin to compare with")
-        base = statistics.fmean(zero)
-        for level in runs:
-            by_spin.setdefault(level.spin_us, []).append(level.result.speed / base)
+        for level, share in zip(runs, round_shares(runs), strict=True):
+            by_spin.setdefault(level.spin_us, []).append(share)
     return {spin: statistics.median(values) for spin, values in sorted(by_spin.items())}
 
 
@@ -218,9 +225,8 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
         run = levels[-len(order) :]
-        zero = statistics.fmean(level.result.speed for level in run if not level.spin_us)
-        for level in run:
-            print(level_json(level, level.result.speed / zero), flush=True)
+        for level, share in zip(run, round_shares(run), strict=True):
+            print(level_json(level, share), flush=True)
     lines, summary = summary_lines(levels, args.fraction, hot_us, hot_load)
     for line in lines:
         print(line)
